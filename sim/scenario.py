@@ -1,0 +1,488 @@
+"""Scenario schema: the YAML a user runs, validated with pydantic.
+
+Every model forbids unknown keys. :func:`load_scenario` turns pydantic's errors into
+:class:`ScenarioError` whose lines name the dotted key path, the offending value and
+what is allowed. ``--set dotted.key=value`` overrides are applied to the raw YAML
+before validation, so they are checked like everything else.
+
+Robot presets follow thesis 7.1 (LRU narrow stereo 50.6 deg, b = 9 cm; wide-angle
+112.8 deg; ARDEA two stereo pairs b = 12 cm tilted +-60 deg). Default lane stage costs
+come from the on-board measurements of thesis 8.4.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
+
+PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegFloat = Annotated[float, Field(ge=0)]
+XY = tuple[float, float]
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be loaded; ``problems`` holds one readable line each."""
+
+    def __init__(self, source: str, problems: list[str]):
+        self.source = source
+        self.problems = problems
+        super().__init__(f"{source}: invalid scenario\n  " + "\n  ".join(problems))
+
+
+class StrictModel(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+def _ordered_range(value: tuple[float, float], what: str) -> tuple[float, float]:
+    if value[0] > value[1]:
+        raise ValueError(f"{what} must be [min, max] with min <= max")
+    return value
+
+
+# --------------------------------------------------------------------------- terrain
+
+
+class CraterConfig(StrictModel):
+    """Bowl-shaped craters with raised rims (depth and rim height relative to radius)."""
+
+    count: int = Field(6, ge=0, le=500)
+    radius_m: tuple[PositiveFloat, PositiveFloat] = (1.0, 4.0)
+    depth_ratio: float = Field(0.2, gt=0, le=1.0, description="depth / radius")
+    rim_height_ratio: float = Field(0.06, ge=0, le=0.5, description="rim height / radius")
+
+    _range = field_validator("radius_m")(lambda v: _ordered_range(v, "radius_m"))
+
+
+class SlopeConfig(StrictModel):
+    """A global planar tilt of the heightfield."""
+
+    gradient_deg: float = Field(0.0, ge=0, le=30)
+    direction_deg: float = 0.0
+
+
+class RidgeConfig(StrictModel):
+    """A straight ridge (positive height) or trench/ramp cut (negative height)."""
+
+    start_xy: XY
+    end_xy: XY
+    height_m: float = Field(..., ge=-5, le=5)
+    width_m: PositiveFloat = 2.0
+
+
+class RockConfig(StrictModel):
+    """Rocks as separate geoms; diameters follow a truncated power law
+    N(>D) ~ D^-exponent, the usual model of planetary rock size-frequency."""
+
+    count: int = Field(25, ge=0, le=2000)
+    diameter_m: tuple[PositiveFloat, PositiveFloat] = (0.15, 0.8)
+    power_law_exponent: float = Field(2.5, gt=0, le=6)
+    clearance_m: NonNegFloat = Field(
+        2.0, description="keep rocks this far from robot starts, waypoints' straight legs and the lander"
+    )
+
+    _range = field_validator("diameter_m")(lambda v: _ordered_range(v, "diameter_m"))
+
+
+class LanderConfig(StrictModel):
+    xy: XY = (0.0, 0.0)
+    yaw_deg: float = 0.0
+    tag_id: int = Field(0, ge=0, le=586, description="AprilTag 36h11 id of the lander's marker")
+    tag_size_m: PositiveFloat = 0.4
+
+
+class TextureConfig(StrictModel):
+    """Procedural regolith albedo: multi-octave noise from the seed."""
+
+    size_px: int = Field(2048, ge=256, le=8192)
+    texel_m: PositiveFloat = Field(0.02, description="ground size of one texel")
+    contrast: float = Field(0.35, gt=0, le=1.0)
+
+
+class TerrainConfig(StrictModel):
+    preset: Literal["moon", "mars", "etna"] = "moon"
+    size_m: float = Field(40.0, ge=5, le=500, description="side length of the square terrain")
+    resolution_m: float = Field(0.1, ge=0.02, le=1.0, description="heightfield grid spacing")
+    roughness_m: NonNegFloat = Field(0.05, description="amplitude of fractal surface noise")
+    roughness_wavelength_m: PositiveFloat = 4.0
+    craters: CraterConfig = CraterConfig()
+    slope: SlopeConfig = SlopeConfig()
+    ridges: list[RidgeConfig] = []
+    rocks: RockConfig = RockConfig()
+    lander: LanderConfig | None = None
+    texture: TextureConfig = TextureConfig()
+
+
+# --------------------------------------------------------------------------- robots
+
+
+class CameraConfig(StrictModel):
+    """Rendered rectified pinhole stereo. ``hfov_deg`` overrides the preset's."""
+
+    width: int = Field(320, ge=32, le=2048)
+    height: int = Field(240, ge=32, le=2048)
+    rate_hz: float = Field(5.0, gt=0, le=30)
+    color: Literal["grey", "rgb"] = "grey"
+    hfov_deg: float | None = Field(None, gt=10, lt=170)
+    depth_ground_truth_every: int = Field(
+        1, ge=0, description="render ground-truth depth every n-th frame (0: never)"
+    )
+    znear_m: PositiveFloat = 0.05
+    zfar_m: PositiveFloat = 60.0
+
+
+class ImuConfig(StrictModel):
+    preset: Literal["xsens_mti10", "adis16407"] | None = Field(
+        None, description="default: xsens_mti10 on rovers, adis16407 on ardea (thesis 7.1)"
+    )
+    rate_hz: float = Field(200.0, gt=0, le=1000)
+
+
+class WheelOdometryConfig(StrictModel):
+    rate_hz: float = Field(50.0, gt=0, le=500)
+    speed_noise_std_mps: NonNegFloat = 0.01
+    yaw_rate_noise_std_rps: NonNegFloat = 0.01
+
+
+class WaypointConfig(StrictModel):
+    xy: XY
+    altitude_m: PositiveFloat | None = Field(
+        None, description="hexacopter only: height above the terrain under the waypoint"
+    )
+    scan: bool = Field(False, description="360 deg scan on arrival (pan head on rovers, yaw on ardea)")
+
+
+class RouteConfig(StrictModel):
+    speed_mps: PositiveFloat = 0.3
+    tolerance_m: PositiveFloat = 0.35
+    waypoints: list[WaypointConfig] = []
+    scan_duration_s: PositiveFloat = 20.0
+    cruise_altitude_m: PositiveFloat = Field(3.0, description="hexacopter default height above terrain")
+    land: bool = Field(False, description="hexacopter lands after the last waypoint")
+    stuck_timeout_s: PositiveFloat = Field(15.0, description="no progress for this long counts as stuck")
+
+    @field_validator("waypoints", mode="before")
+    @classmethod
+    def _short_form(cls, value: Any) -> Any:
+        """Accept ``[x, y]`` and ``[x, y, altitude]`` as short forms of a waypoint."""
+        if not isinstance(value, list):
+            return value
+        out = []
+        for item in value:
+            if isinstance(item, (list, tuple)) and len(item) in (2, 3):
+                wp: dict[str, Any] = {"xy": list(item[:2])}
+                if len(item) == 3:
+                    wp["altitude_m"] = item[2]
+                out.append(wp)
+            else:
+                out.append(item)
+        return out
+
+
+class StartConfig(StrictModel):
+    xy: XY = (0.0, 0.0)
+    yaw_deg: float = 0.0
+
+
+class ComputerConfig(StrictModel):
+    """The robot's on-board computer (thesis 7.1: rovers quad-core i7, ARDEA dual-core,
+    both with an FPGA for dense stereo)."""
+
+    cores: int | None = Field(None, ge=1, le=64, description="default: 4 on rovers, 2 on ardea")
+    fpga: bool = Field(True, description="stereo matching runs on its own FPGA device")
+
+
+class RobotConfig(StrictModel):
+    name: str = Field(..., pattern=NAME_PATTERN)
+    preset: Literal["lru", "lru_wide", "ardea"]
+    start: StartConfig = StartConfig()
+    tag_ids: list[Annotated[int, Field(ge=0, le=586)]] | None = Field(
+        None, description="AprilTag 36h11 ids of the robot's markers (default: assigned from 1 up)"
+    )
+    route: RouteConfig = RouteConfig()
+    camera: CameraConfig = CameraConfig()
+    imu: ImuConfig = ImuConfig()
+    wheel_odometry: WheelOdometryConfig = WheelOdometryConfig()
+    computer: ComputerConfig = ComputerConfig()
+
+    @property
+    def is_aerial(self) -> bool:
+        return self.preset == "ardea"
+
+    @property
+    def marker_count(self) -> int:
+        return 2 if self.is_aerial else 3
+
+    @model_validator(mode="after")
+    def _check_preset_fields(self) -> RobotConfig:
+        if not self.is_aerial:
+            bad = [i for i, w in enumerate(self.route.waypoints) if w.altitude_m is not None]
+            if bad:
+                raise ValueError(f"altitude_m is for the hexacopter only; rover waypoints {bad} have one")
+            if self.route.land:
+                raise ValueError("route.land is for the hexacopter only")
+        if self.tag_ids is not None and len(self.tag_ids) != self.marker_count:
+            raise ValueError(f"preset {self.preset} carries {self.marker_count} markers, got {len(self.tag_ids)} tag_ids")
+        return self
+
+
+# --------------------------------------------------------------------------- run
+
+
+class PhysicsConfig(StrictModel):
+    timestep_s: float = Field(0.001, gt=0, le=0.01)
+    control_rate_hz: float = Field(200.0, gt=0, le=1000, description="controllers and IMU sampling tick")
+
+
+class StageCosts(StrictModel):
+    """Modelled compute time per job (s). Defaults from thesis 7.1 and 8.4."""
+
+    stereo_s: NonNegFloat = Field(1 / 14.6, description="FPGA SGM at up to 14.6 Hz (thesis 7.1)")
+
+
+class ComputeConfig(StrictModel):
+    model: Literal["modeled", "measured"] = "modeled"
+    measured_scale: PositiveFloat = Field(1.0, description="measured mode: wall time x this factor")
+    stages: StageCosts = StageCosts()
+    max_queue: int = Field(2, ge=1, le=1000, description="real-time jobs waiting beyond this are dropped")
+
+
+class OutputConfig(StrictModel):
+    recording: bool = True
+    recording_image_every: int = Field(5, ge=1, description="log every n-th camera frame to the recording")
+    recording_image_scale: float = Field(0.5, gt=0, le=1)
+    topdown_png: bool = True
+
+
+class Scenario(StrictModel):
+    name: str = Field(..., pattern=r"^[A-Za-z0-9_.-]+$")
+    description: str = ""
+    seed: int = Field(0, ge=0)
+    duration_s: PositiveFloat
+    terrain: TerrainConfig = TerrainConfig()
+    robots: list[RobotConfig] = Field(..., min_length=1)
+    physics: PhysicsConfig = PhysicsConfig()
+    compute: ComputeConfig = ComputeConfig()
+    output: OutputConfig = OutputConfig()
+
+    @model_validator(mode="after")
+    def _check_team(self) -> Scenario:
+        names = [r.name for r in self.robots]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"robot names must be unique, repeated: {dupes}")
+        half = self.terrain.size_m / 2
+        for robot in self.robots:
+            points = [("start", robot.start.xy)] + [
+                (f"waypoint {i}", w.xy) for i, w in enumerate(robot.route.waypoints)
+            ]
+            for what, (x, y) in points:
+                if abs(x) > half - 1.0 or abs(y) > half - 1.0:
+                    raise ValueError(
+                        f"robot {robot.name}: {what} {[x, y]} lies outside the terrain "
+                        f"(|x|, |y| <= {half - 1.0:g} m for size_m={self.terrain.size_m:g})"
+                    )
+        ids = self.assigned_tag_ids()
+        used: dict[int, str] = {}
+        if self.terrain.lander is not None:
+            used[self.terrain.lander.tag_id] = "lander"
+        for name, tags in ids.items():
+            for tag in tags:
+                if tag in used:
+                    raise ValueError(f"AprilTag id {tag} of robot {name} is already used by {used[tag]}")
+                used[tag] = name
+        ratio = 1.0 / (self.physics.control_rate_hz * self.physics.timestep_s)
+        if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+            raise ValueError(
+                "physics.control_rate_hz must divide 1/physics.timestep_s "
+                f"(got {self.physics.control_rate_hz:g} Hz at {self.physics.timestep_s:g} s)"
+            )
+        return self
+
+    def assigned_tag_ids(self) -> dict[str, list[int]]:
+        """Marker ids per robot: explicit ``tag_ids`` or the next free ids from 1 up."""
+        taken = {t for r in self.robots if r.tag_ids for t in r.tag_ids}
+        if self.terrain.lander is not None:
+            taken.add(self.terrain.lander.tag_id)
+        next_id = 1
+        out: dict[str, list[int]] = {}
+        for robot in self.robots:
+            if robot.tag_ids is not None:
+                out[robot.name] = list(robot.tag_ids)
+                continue
+            ids = []
+            while len(ids) < robot.marker_count:
+                if next_id not in taken:
+                    ids.append(next_id)
+                    taken.add(next_id)
+                next_id += 1
+            out[robot.name] = ids
+        return out
+
+    def robot(self, name: str) -> RobotConfig:
+        for r in self.robots:
+            if r.name == name:
+                return r
+        raise KeyError(f"no robot named {name!r}; robots: {[r.name for r in self.robots]}")
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Apply ``dotted.key=value`` overrides (values parsed as YAML) to a raw scenario.
+
+    List elements are addressed by index or, for lists of named items such as
+    ``robots``, by name: ``robots.lru1.route.speed_mps=0.4``.
+    """
+    for item in overrides:
+        if "=" not in item:
+            raise ScenarioError("--set", [f"{item!r}: expected dotted.key=value"])
+        key, text = item.split("=", 1)
+        value = yaml.safe_load(text) if text.strip() else None
+        parts = key.strip().split(".")
+        node: Any = raw
+        for depth, part in enumerate(parts):
+            last = depth == len(parts) - 1
+            where = ".".join(parts[: depth + 1])
+            if isinstance(node, list):
+                index = _list_index(node, part, where)
+                if last:
+                    node[index] = value
+                else:
+                    node = node[index]
+            elif isinstance(node, dict):
+                if last:
+                    node[part] = value
+                else:
+                    if node.get(part) is None:
+                        node[part] = {}
+                    node = node[part]
+            else:
+                raise ScenarioError("--set", [f"{where}: cannot descend into {type(node).__name__} value {node!r}"])
+    return raw
+
+
+def _list_index(node: list, part: str, where: str) -> int:
+    if part.lstrip("-").isdigit():
+        index = int(part)
+        if not -len(node) <= index < len(node):
+            raise ScenarioError("--set", [f"{where}: index {index} out of range (list has {len(node)} items)"])
+        return index
+    for i, element in enumerate(node):
+        if isinstance(element, dict) and element.get("name") == part:
+            return i
+    names = [e.get("name") for e in node if isinstance(e, dict)]
+    raise ScenarioError("--set", [f"{where}: no element named {part!r}; names: {names}"])
+
+
+def _allowed_keys(model: type[BaseModel], loc: tuple) -> list[str] | None:
+    """Walk the schema along ``loc`` (minus its last element) and list the allowed keys there."""
+    current: Any = model
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        if not (isinstance(current, type) and issubclass(current, BaseModel)):
+            return None
+        field = current.model_fields.get(part)
+        if field is None:
+            return None
+        current = _inner_model(field.annotation)
+    if isinstance(current, type) and issubclass(current, BaseModel):
+        return sorted(current.model_fields)
+    return None
+
+
+def _inner_model(annotation: Any) -> Any:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in getattr(annotation, "__args__", ()) or ():
+        found = _inner_model(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _format_loc(loc: tuple, raw: dict[str, Any]) -> str:
+    out: list[str] = []
+    node: Any = raw
+    for part in loc:
+        if isinstance(part, int):
+            label = str(part)
+            if isinstance(node, list) and part < len(node) and isinstance(node[part], dict) and "name" in node[part]:
+                label = f"{part}({node[part]['name']})"
+            out.append(label)
+            node = node[part] if isinstance(node, list) and part < len(node) else None
+        else:
+            if part in ("function-after", "function-before") or "[" in str(part):
+                continue
+            out.append(str(part))
+            node = node.get(part) if isinstance(node, dict) else None
+    return ".".join(out) or "(top level)"
+
+
+def _describe(error: dict, raw: dict[str, Any]) -> str:
+    loc = tuple(error["loc"])
+    path = _format_loc(loc, raw)
+    if error["type"] == "extra_forbidden":
+        allowed = _allowed_keys(Scenario, loc)
+        hint = f"; allowed keys here: {', '.join(allowed)}" if allowed else ""
+        return f"{path}: unknown key{hint}"
+    if error["type"] == "missing":
+        return f"{path}: required key is missing"
+    value = error.get("input")
+    msg = error["msg"].removeprefix("Value error, ")
+    if isinstance(value, dict):  # a check across several keys: the message names them
+        return f"{path}: {msg}"
+    shown = repr(value)
+    if len(shown) > 80:
+        shown = shown[:77] + "..."
+    return f"{path}: got {shown}: {msg}"
+
+
+def load_scenario(source: str | Path | dict, overrides: list[str] | None = None) -> Scenario:
+    """Load, override and validate a scenario; raise :class:`ScenarioError` on any problem."""
+    if isinstance(source, dict):
+        raw, label = source, "<dict>"
+    else:
+        path = Path(source)
+        label = str(path)
+        if not path.is_file():
+            raise ScenarioError(label, ["file not found"])
+        try:
+            raw = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as exc:
+            raise ScenarioError(label, [f"not valid YAML: {exc}"]) from exc
+        if not isinstance(raw, dict):
+            raise ScenarioError(label, [f"top level must be a mapping, got {type(raw).__name__}"])
+    raw = apply_overrides(raw, overrides or [])
+    try:
+        return Scenario.model_validate(raw)
+    except ValidationError as exc:
+        raise ScenarioError(label, [_describe(e, raw) for e in exc.errors()]) from None
+
+
+def dump_scenario(scenario: Scenario) -> str:
+    """The resolved scenario (all defaults filled in) as YAML."""
+    data = scenario.model_dump(mode="json")
+    ids = scenario.assigned_tag_ids()
+    for robot in data["robots"]:
+        robot["tag_ids"] = ids[robot["name"]]
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def hfov_to_vfov_deg(hfov_deg: float, width: int, height: int) -> float:
+    """Vertical field of view of a pinhole camera with square pixels."""
+    return math.degrees(2 * math.atan(math.tan(math.radians(hfov_deg) / 2) * height / width))
