@@ -344,35 +344,38 @@ class Scenario(StrictModel):
 def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
     """Apply ``dotted.key=value`` overrides (values parsed as YAML) to a raw scenario.
 
-    List elements are addressed by index or, for lists of named items such as
-    ``robots``, by name: ``robots.lru1.route.speed_mps=0.4``.
+    List elements are addressed by index, by name for lists of named items such as
+    ``robots`` (``robots.lru1.route.speed_mps=0.4``), or all at once with ``*``
+    (``robots.*.camera.rate_hz=10``).
     """
     for item in overrides:
         if "=" not in item:
             raise ScenarioError("--set", [f"{item!r}: expected dotted.key=value"])
         key, text = item.split("=", 1)
         value = yaml.safe_load(text) if text.strip() else None
-        parts = key.strip().split(".")
-        node: Any = raw
-        for depth, part in enumerate(parts):
-            last = depth == len(parts) - 1
-            where = ".".join(parts[: depth + 1])
-            if isinstance(node, list):
-                index = _list_index(node, part, where)
-                if last:
-                    node[index] = value
-                else:
-                    node = node[index]
-            elif isinstance(node, dict):
-                if last:
-                    node[part] = value
-                else:
-                    if node.get(part) is None:
-                        node[part] = {}
-                    node = node[part]
-            else:
-                raise ScenarioError("--set", [f"{where}: cannot descend into {type(node).__name__} value {node!r}"])
+        _set(raw, key.strip().split("."), value, [])
     return raw
+
+
+def _set(node: Any, parts: list[str], value: Any, done: list[str]) -> None:
+    part, rest = parts[0], parts[1:]
+    where = ".".join(done + [part])
+    if isinstance(node, list):
+        indices = range(len(node)) if part == "*" else [_list_index(node, part, where)]
+        for index in indices:
+            if rest:
+                _set(node[index], rest, value, done + [str(index)])
+            else:
+                node[index] = value
+    elif isinstance(node, dict):
+        if not rest:
+            node[part] = value
+            return
+        if node.get(part) is None:
+            node[part] = {}
+        _set(node[part], rest, value, done + [part])
+    else:
+        raise ScenarioError("--set", [f"{where}: cannot descend into {type(node).__name__} value {node!r}"])
 
 
 def _list_index(node: list, part: str, where: str) -> int:

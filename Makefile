@@ -1,0 +1,38 @@
+# marsyard: every target sets itself up on a fresh machine (Debian libraries, venv, packages).
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.marsyard-setup
+export MUJOCO_GL ?= egl
+# pytest workers: 2 cores on our machines
+WORKERS ?= 2
+
+.PHONY: setup demo test test-slow bench lint clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/system-deps.sh
+	bash scripts/system-deps.sh
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+demo: setup
+	$(BIN)/marsyard run scenarios/quickstart.yaml --out results/quickstart
+
+test: setup
+	$(BIN)/python -m pytest -q -n $(WORKERS) -m "not slow"
+
+test-slow: setup
+	$(BIN)/python -m pytest -q -n $(WORKERS) -m slow
+
+bench: setup
+	$(BIN)/python -m sim.bench scenarios/quickstart.yaml --out results/bench
+
+lint: setup
+	$(BIN)/ruff check sim slam comms tests
+
+clean:
+	rm -rf $(VENV) build *.egg-info

@@ -1,0 +1,165 @@
+"""Scheduler lanes: each robot's on-board computer as SimPy resources (design notes §2.4).
+
+A lane has ``cores`` CPU cores (a ``simpy.PriorityResource``) and, like the thesis's
+robots (7.1), optionally an FPGA that runs dense stereo matching. Sensor data becomes
+a job: the job waits for its device, runs the real code when it gets it, then holds
+the device for the compute time of the lane's :class:`ComputeModel`, so its result
+appears at the simulated time a robot would have it. Real-time jobs outrank
+background jobs; a real-time stage whose queue is full drops the new job, as a
+robot's pipeline drops frames it cannot keep up with.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import IntEnum, StrEnum
+from typing import Any
+
+import numpy as np
+import simpy
+
+from sim.scenario import ComputeConfig
+
+
+class Priority(IntEnum):
+    """SimPy serves lower numbers first."""
+
+    REALTIME = 0
+    BACKGROUND = 10
+
+
+class Device(StrEnum):
+    CPU = "cpu"
+    FPGA = "fpga"
+
+
+class ComputeModel:
+    """Compute time of a job: ``modeled`` (per-stage constants, thesis 8.4 defaults)
+    or ``measured`` (the job's wall time on this machine times a scale factor)."""
+
+    def __init__(self, cfg: ComputeConfig):
+        self.cfg = cfg
+
+    def cost(self, stage: str, wall_s: float) -> float:
+        if self.cfg.model == "measured":
+            return wall_s * self.cfg.measured_scale
+        try:
+            return getattr(self.cfg.stages, f"{stage}_s")
+        except AttributeError:
+            known = sorted(k.removesuffix("_s") for k in type(self.cfg.stages).model_fields)
+            raise KeyError(f"no modelled cost for stage {stage!r}; known stages: {known}") from None
+
+
+@dataclass
+class JobRecord:
+    stage: str
+    device: str
+    submitted: float
+    started: float | None = None
+    finished: float | None = None
+    wall_s: float = 0.0
+    compute_s: float = 0.0
+    dropped: bool = False
+
+
+@dataclass
+class _StageQueue:
+    waiting: int = 0
+    records: list[JobRecord] = field(default_factory=list)
+
+
+class Lane:
+    """One robot's computer. ``submit`` returns the SimPy process of the job, or
+    ``None`` when a real-time job was dropped because its stage queue was full."""
+
+    def __init__(self, env: simpy.Environment, robot: str, cores: int, fpga: bool, compute: ComputeModel, max_queue: int):
+        self.env = env
+        self.robot = robot
+        self.compute = compute
+        self.max_queue = max_queue
+        self.devices: dict[str, simpy.PriorityResource] = {Device.CPU: simpy.PriorityResource(env, capacity=cores)}
+        if fpga:
+            self.devices[Device.FPGA] = simpy.PriorityResource(env, capacity=1)
+        self.capacity = {name: res.capacity for name, res in self.devices.items()}
+        self.busy_s: dict[str, float] = defaultdict(float)
+        self.wall_s = 0.0
+        self._stages: dict[str, _StageQueue] = defaultdict(_StageQueue)
+
+    def device_for(self, preferred: str) -> str:
+        """The FPGA if the lane has one and the job can use it, else the CPU."""
+        return preferred if preferred in self.devices else Device.CPU
+
+    def submit(
+        self,
+        stage: str,
+        work: Callable[[], Any],
+        on_done: Callable[[Any, float], None] | None = None,
+        priority: Priority = Priority.REALTIME,
+        device: str = Device.CPU,
+    ) -> simpy.Process | None:
+        device = self.device_for(device)
+        queue = self._stages[stage]
+        record = JobRecord(stage=stage, device=device, submitted=self.env.now)
+        queue.records.append(record)
+        if priority == Priority.REALTIME and queue.waiting >= self.max_queue:
+            record.dropped = True
+            return None
+        resource = self.devices[device]
+        # requested now, so a job that finds its device free holds it at once
+        request = resource.request(priority=int(priority))
+        waits = not request.triggered
+        queue.waiting += waits
+        return self.env.process(self._run(resource, request, waits, queue, record, work, on_done))
+
+    def _run(self, resource, request, waits: bool, queue: _StageQueue, record: JobRecord, work, on_done):
+        try:
+            yield request
+            queue.waiting -= waits
+            record.started = self.env.now
+            t0 = time.perf_counter()
+            result = work()
+            record.wall_s = time.perf_counter() - t0
+            self.wall_s += record.wall_s
+            record.compute_s = self.compute.cost(record.stage, record.wall_s)
+            yield self.env.timeout(record.compute_s)
+            record.finished = self.env.now
+            self.busy_s[record.device] += record.compute_s
+        finally:
+            resource.release(request)
+        if on_done is not None:
+            on_done(result, self.env.now)
+
+    def stats(self, sim_time_s: float) -> list[dict[str, Any]]:
+        """One row per stage: jobs, drops, queueing delay, compute time, device utilisation."""
+        rows = []
+        for stage, queue in sorted(self._stages.items()):
+            done = [r for r in queue.records if r.finished is not None]
+            delays = np.array([r.started - r.submitted for r in done]) if done else np.zeros(0)
+            latency = np.array([r.finished - r.submitted for r in done]) if done else np.zeros(0)
+            device = queue.records[0].device if queue.records else Device.CPU
+            rows.append(
+                {
+                    "robot": self.robot,
+                    "stage": stage,
+                    "device": device,
+                    "submitted": len(queue.records),
+                    "completed": len(done),
+                    "dropped": sum(r.dropped for r in queue.records),
+                    "queue_delay_mean_s": float(delays.mean()) if delays.size else 0.0,
+                    "queue_delay_p95_s": float(np.percentile(delays, 95)) if delays.size else 0.0,
+                    "queue_delay_max_s": float(delays.max()) if delays.size else 0.0,
+                    "latency_mean_s": float(latency.mean()) if latency.size else 0.0,
+                    "compute_mean_s": float(np.mean([r.compute_s for r in done])) if done else 0.0,
+                    "wall_mean_s": float(np.mean([r.wall_s for r in done])) if done else 0.0,
+                }
+            )
+        return rows
+
+    def utilization(self, sim_time_s: float) -> dict[str, float]:
+        """Busy share of each device over the run (1.0 = all its units busy all the time)."""
+        if sim_time_s <= 0:
+            return {name: 0.0 for name in self.devices}
+        return {name: self.busy_s[name] / (sim_time_s * self.capacity[name]) for name in self.devices}

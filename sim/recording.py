@@ -1,0 +1,92 @@
+"""The rerun recording of a run (``recording.rrd``), written without a viewer.
+
+Entity layout: ``world/terrain`` (mesh coloured by the albedo), ``world/rocks``,
+``world/lander``, ``world/robots/<name>`` (ground-truth pose over ``sim_time``),
+``world/trajectories/<name>`` and ``cameras/<name>/<rig>/{left,depth}``
+(downsampled images). Open it with ``rerun results/<run>/recording.rrd``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rerun as rr
+
+from sim.camera_rig import StereoRig
+from sim.terrain import Terrain
+
+TIMELINE = "sim_time"
+TERRAIN_MESH_CELLS = 200  # the terrain mesh is downsampled to at most this many cells a side
+
+
+class Recorder:
+    def __init__(self, path: Path, recording_id: str, image_scale: float = 0.5):
+        self.path = Path(path)
+        self.image_scale = image_scale
+        self.rec = rr.RecordingStream("marsyard", recording_id=recording_id)
+        self.rec.save(str(self.path))
+        self._tracks: dict[str, list[np.ndarray]] = {}
+
+    def log_world(self, terrain: Terrain, world) -> None:
+        """Terrain mesh, rocks and lander, once, as static data."""
+        heights = terrain.heights
+        step = max(1, int(np.ceil((heights.shape[0] - 1) / TERRAIN_MESH_CELLS)))
+        h = heights[::step, ::step]
+        n_rows, n_cols = h.shape
+        half = terrain.size_m / 2
+        ys = -half + np.arange(n_rows) * step * terrain.resolution_m
+        xs = -half + np.arange(n_cols) * step * terrain.resolution_m
+        gx, gy = np.meshgrid(xs, ys)
+        vertices = np.stack([gx, gy, h], axis=-1).reshape(-1, 3)
+        albedo = cv2.resize(terrain.albedo, (n_cols, n_rows), interpolation=cv2.INTER_AREA)
+        grey = albedo.reshape(-1).astype(np.uint8)
+        colors = np.stack([grey, grey, grey], axis=-1)
+        idx = np.arange(n_rows * n_cols).reshape(n_rows, n_cols)
+        a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]
+        triangles = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+        self.rec.log("world/terrain", rr.Mesh3D(vertex_positions=vertices, triangle_indices=triangles, vertex_colors=colors), static=True)
+        if terrain.rocks:
+            self.rec.log(
+                "world/rocks",
+                rr.Ellipsoids3D(
+                    centers=[r.center for r in terrain.rocks],
+                    half_sizes=[r.radii for r in terrain.rocks],
+                    rotation_axis_angles=[rr.RotationAxisAngle(axis=[0, 0, 1], angle=r.yaw) for r in terrain.rocks],
+                    colors=[[150, 140, 130]] * len(terrain.rocks),
+                    fill_mode="solid",
+                ),
+                static=True,
+            )
+        if terrain.lander is not None:
+            lx, ly = terrain.lander.xy
+            self.rec.log(
+                "world/lander",
+                rr.Boxes3D(centers=[[lx, ly, terrain.lander.base_z + 0.8]], half_sizes=[[1.2, 1.2, 0.5]], colors=[[200, 170, 60]]),
+                static=True,
+            )
+
+    def log_pose(self, robot: str, t: float, pos: np.ndarray, quat_wxyz: np.ndarray) -> None:
+        self.rec.set_time(TIMELINE, duration=t)
+        w, x, y, z = quat_wxyz
+        self.rec.log(f"world/robots/{robot}", rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=[x, y, z, w])))
+        self._tracks.setdefault(robot, []).append(np.asarray(pos, dtype=np.float32))
+
+    def log_frame(self, robot: str, rig: StereoRig, t: float, stereo) -> None:
+        self.rec.set_time(TIMELINE, duration=t)
+        scale = self.image_scale
+        size = (max(1, int(rig.width * scale)), max(1, int(rig.height * scale)))
+        left = cv2.resize(stereo.left, size, interpolation=cv2.INTER_AREA)
+        base = f"cameras/{robot}/{rig.name}"
+        self.rec.log(f"{base}/left", rr.Image(left))
+        if stereo.depth is not None:
+            depth = cv2.resize(stereo.depth, size, interpolation=cv2.INTER_NEAREST)
+            self.rec.log(f"{base}/depth", rr.DepthImage(depth, meter=1.0))
+
+    def close(self) -> None:
+        for robot, track in self._tracks.items():
+            if len(track) > 1:
+                self.rec.log(f"world/trajectories/{robot}", rr.LineStrips3D([np.stack(track)]), static=True)
+        self.rec.flush()
+        self.rec.disconnect()

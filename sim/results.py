@@ -1,0 +1,244 @@
+"""The results folder of a run.
+
+::
+
+    scenario.yaml               resolved scenario (defaults filled in, tag ids assigned)
+    metrics.json                every number of the run (runtime, routes, stereo, lanes)
+    trajectories/<robot>.gt.tum ground-truth body pose in the world frame (TUM: t x y z qx qy qz qw)
+    sensors/<robot>.npz         IMU (measured, true, true biases) and wheel odometry samples
+    stereo_depth_error.csv      SGBM depth against rendered ground truth, per robot, rig, range
+    lanes.csv                   per robot and stage: jobs, drops, queueing delay, compute time
+    routes.csv                  every waypoint of every robot with its outcome
+    topdown.png                 terrain, rocks, lander, trajectories and waypoint outcomes
+    recording.rrd               rerun recording (see sim.recording)
+    error.txt                   only when the run failed: the traceback
+
+A failed run still writes everything it produced up to the failure.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import LightSource  # noqa: E402
+
+from sim.runner import Run  # noqa: E402
+from sim.scenario import Scenario, dump_scenario  # noqa: E402
+
+STEREO_SUMMARY_BINS = ("2-4m", "4-6m")  # the 2-6 m band the issue's acceptance test uses
+
+
+def prepare(out: Path, scenario: Scenario) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scenario.yaml").write_text(dump_scenario(scenario))
+
+
+def write(run: Run, out: Path, error: str | None = None) -> dict[str, Any]:
+    """Write every result file of ``run`` into ``out``; return the metrics dict."""
+    out.mkdir(parents=True, exist_ok=True)
+    if error is not None:
+        (out / "error.txt").write_text(error)
+    robots_metrics: dict[str, Any] = {}
+    depth_rows, lane_rows, route_rows = [], [], []
+    for name, runtime in run.robots.items():
+        log, robot = runtime.log, runtime.robot
+        _write_tum(out / "trajectories" / f"{name}.gt.tum", log.gt_t, log.gt_pose)
+        _write_sensors(out / "sensors" / f"{name}.npz", log)
+        stereo = {}
+        for rig in robot.stereo_rigs:
+            acc = log.depth_error.get(rig.name)
+            if acc is None:
+                continue
+            depth_rows += acc.rows(name, rig.name)
+            stereo[rig.name] = acc.summary(STEREO_SUMMARY_BINS)
+        stages = runtime.lane.stats(run.sim_time)
+        lane_rows += stages
+        waypoints = [_waypoint_row(name, wp) for wp in robot.waypoints]
+        route_rows += waypoints
+        counts = {s: sum(w["status"] == s for w in waypoints) for s in ("reached", "failed", "pending")}
+        robots_metrics[name] = {
+            "preset": robot.cfg.preset,
+            "final_status": robot.status,
+            "distance_m": _path_length(log.gt_pose),
+            "route": {"waypoints": len(waypoints), **counts},
+            "camera_frames": log.frames,
+            "stereo": stereo,
+            "lane": {
+                "utilization": runtime.lane.utilization(run.sim_time),
+                "stages": {row["stage"]: {k: v for k, v in row.items() if k not in ("robot", "stage")} for row in stages},
+            },
+        }
+    _write_csv(out / "stereo_depth_error.csv", depth_rows)
+    _write_csv(out / "lanes.csv", lane_rows)
+    _write_csv(out / "routes.csv", route_rows)
+    metrics = {
+        "scenario": run.scenario.name,
+        "seed": run.scenario.seed,
+        "status": "failed" if error else "completed",
+        "error": error.strip().splitlines()[-1] if error else None,
+        "runtime": runtime_metrics(run),
+        "robots": robots_metrics,
+    }
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
+    if run.scenario.output.topdown_png:
+        plot_topdown(run, out / "topdown.png")
+    return metrics
+
+
+def runtime_metrics(run: Run) -> dict[str, Any]:
+    parts = dict(sorted(run.timers.seconds.items()))
+    accounted = sum(parts.values())
+    parts["other"] = max(0.0, run.wall_s - accounted)
+    return {
+        "wall_s": run.wall_s,
+        "sim_s": run.sim_time,
+        "real_time_factor": run.sim_time / run.wall_s if run.wall_s > 0 else None,
+        "parts_s": parts,
+    }
+
+
+def _waypoint_row(robot: str, wp) -> dict[str, Any]:
+    return {
+        "robot": robot,
+        "index": wp.index,
+        "x": wp.xy[0],
+        "y": wp.xy[1],
+        "status": wp.status,
+        "reached_t": wp.reached_t,
+        "reason": wp.reason if wp.status != "pending" else "run ended before the robot got there",
+    }
+
+
+def _path_length(poses: list[np.ndarray]) -> float:
+    if len(poses) < 2:
+        return 0.0
+    xyz = np.stack(poses)[:, :3]
+    return float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum())
+
+
+def _write_tum(path: Path, times: list[float], poses: list[np.ndarray]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w") as f:
+        for t, p in zip(times, poses):
+            x, y, z, qw, qx, qy, qz = p
+            f.write(f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} {qx:.8f} {qy:.8f} {qz:.8f} {qw:.8f}\n")
+
+
+def _write_sensors(path: Path, log) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    def arr(rows, width):
+        return np.stack(rows) if rows else np.zeros((0, width))
+
+    np.savez_compressed(
+        path,
+        imu_t=np.asarray(log.imu_t),
+        imu=arr(log.imu, 6),
+        imu_true=arr(log.imu_true, 6),
+        imu_bias=arr(log.imu_bias, 6),
+        odom_t=np.asarray(log.odom_t),
+        odom=arr(log.odom, 3),
+    )
+
+
+def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    if not rows:
+        path.write_text("")
+        return
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"cannot serialise {type(value).__name__}")
+
+
+WAYPOINT_STYLE = {"reached": ("o", "#2ca02c"), "failed": ("X", "#d62728"), "pending": ("o", "#7f7f7f")}
+
+
+def plot_topdown(run: Run, path: Path) -> None:
+    """Hill-shaded terrain with rocks, lander, trajectories and waypoint outcomes."""
+    terrain = run.terrain
+    half = terrain.size_m / 2
+    fig, ax = plt.subplots(figsize=(8.5, 8), dpi=110)
+    shade = LightSource(azdeg=315, altdeg=35).hillshade(terrain.heights, dx=terrain.resolution_m, dy=terrain.resolution_m)
+    ax.imshow(shade, cmap="gray", origin="lower", extent=(-half, half, -half, half), vmin=0, vmax=1)
+    levels = ax.contour(
+        np.linspace(-half, half, terrain.heights.shape[1]),
+        np.linspace(-half, half, terrain.heights.shape[0]),
+        terrain.heights,
+        levels=12,
+        linewidths=0.4,
+        cmap="copper",
+        alpha=0.6,
+    )
+    fig.colorbar(levels, ax=ax, shrink=0.6, label="terrain height [m]")
+    for rock in terrain.rocks:
+        ax.add_patch(plt.Circle(rock.center[:2], max(rock.radii[:2]), color="#8c564b", alpha=0.8, lw=0))
+    if terrain.lander is not None:
+        lx, ly = terrain.lander.xy
+        ax.add_patch(plt.Rectangle((lx - 1.25, ly - 1.25), 2.5, 2.5, fill=False, ec="gold", lw=2))
+        ax.annotate(f"lander (tag {terrain.lander.marker.tag_id})", (lx, ly + 1.5), color="gold", ha="center", fontsize=8)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (name, runtime) in enumerate(run.robots.items()):
+        color = colors[i % len(colors)]
+        poses = runtime.log.gt_pose
+        if poses:
+            xyz = np.stack(poses)
+            ax.plot(xyz[:, 0], xyz[:, 1], color=color, lw=1.6, label=f"{name} ({runtime.robot.cfg.preset}): {runtime.robot.status}")
+            ax.plot(*xyz[0, :2], marker="^", color=color, ms=9, mec="k")
+        for wp in runtime.robot.waypoints:
+            marker, wcolor = WAYPOINT_STYLE[wp.status]
+            ax.plot(*wp.xy, marker=marker, color=wcolor, mec=color, mew=1.5, ms=8)
+            ax.annotate(str(wp.index), wp.xy, xytext=(4, 4), textcoords="offset points", fontsize=7, color="w")
+    ax.set_xlim(-half, half)
+    ax.set_ylim(-half, half)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"{run.scenario.name} (seed {run.scenario.seed}): {run.sim_time:.0f} s simulated")
+    ax.legend(loc="upper left", fontsize=7, framealpha=0.8)
+    ax.text(
+        0.99,
+        0.01,
+        "waypoints: green reached, red X failed, grey pending",
+        transform=ax.transAxes,
+        ha="right",
+        fontsize=7,
+        color="w",
+    )
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def summary_lines(metrics: dict[str, Any]) -> list[str]:
+    """Short human summary of a run for the CLI."""
+    rt = metrics["runtime"]
+    rtf = rt["real_time_factor"]
+    lines = [f"{rt['sim_s']:.1f} s simulated in {rt['wall_s']:.1f} s wall (real-time factor {rtf:.2f})"]
+    for name, m in metrics["robots"].items():
+        route = m["route"]
+        stereo = ", ".join(
+            f"{rig} depth err {s['median_rel_error'] * 100:.1f} %" for rig, s in m["stereo"].items() if s.get("median_rel_error") is not None
+        )
+        lines.append(
+            f"{name}: {m['final_status']}, {m['distance_m']:.1f} m, waypoints {route['reached']}/{route['waypoints']} reached"
+            + (f", {route['failed']} failed" if route["failed"] else "")
+            + (f"; {stereo} (2-6 m)" if stereo else "")
+        )
+    return lines
+

@@ -1,0 +1,325 @@
+"""The run loop: one SimPy environment drives physics, sensors, controllers and lanes.
+
+The physics process is the master clock (design notes §2.3). Each control tick it lets
+every robot's controller set its actuators, steps MuJoCo, and then samples the sensors
+that are due on this tick (IMU, wheel odometry, stereo cameras, ground truth).
+Sampling from the clock, not from separate SimPy processes, fixes the order of
+events within a tick, which keeps runs deterministic. Sensor data becomes jobs in each
+robot's lane (:mod:`sim.lanes`); the first real job is stereo matching
+(:mod:`slam.stereo`), whose depth is scored against rendered ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+import simpy
+
+from sim.camera_rig import StereoRig
+from sim.lanes import ComputeModel, Device, Lane
+from sim.recording import Recorder
+from sim.robots import make_robot
+from sim.robots.base import Robot
+from sim.scenario import Scenario
+from sim.seeding import RandomStreams
+from sim.sensors import IMU_PRESETS, ImuModel, StereoRenderer, WheelOdometryModel
+from sim.terrain import Terrain, generate_terrain
+from sim.world import World, build_world
+from slam.stereo import StereoCalibration, StereoMatcher
+
+GROUND_TRUTH_RATE_HZ = 50.0
+DEPTH_BINS_M = (0.0, 2.0, 4.0, 6.0, 10.0, math.inf)
+DEPTH_SAMPLE_STRIDE = 2  # score every 2nd pixel in each direction
+
+
+def _labels() -> list[str]:
+    return [f"{lo:g}-{hi:g}m" if math.isfinite(hi) else f">{lo:g}m" for lo, hi in zip(DEPTH_BINS_M, DEPTH_BINS_M[1:])]
+
+
+DEPTH_BIN_LABELS = _labels()
+
+
+@dataclass
+class DepthErrorAccumulator:
+    """Relative and absolute stereo depth error against rendered ground truth, per range bin."""
+
+    relative: dict[str, list[np.ndarray]] = field(default_factory=lambda: defaultdict(list))
+    absolute: dict[str, list[np.ndarray]] = field(default_factory=lambda: defaultdict(list))
+    truth_pixels: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    frames: int = 0
+
+    def add(self, estimate: np.ndarray, truth: np.ndarray) -> None:
+        est = estimate[::DEPTH_SAMPLE_STRIDE, ::DEPTH_SAMPLE_STRIDE]
+        gt = truth[::DEPTH_SAMPLE_STRIDE, ::DEPTH_SAMPLE_STRIDE]
+        seen = np.isfinite(gt) & (gt > 0)
+        valid = seen & np.isfinite(est) & (est > 0)
+        self.frames += 1
+        for label, lo, hi in zip(DEPTH_BIN_LABELS, DEPTH_BINS_M, DEPTH_BINS_M[1:]):
+            in_bin = (gt >= lo) & (gt < hi)
+            self.truth_pixels[label] += int(np.count_nonzero(seen & in_bin))
+            sel = valid & in_bin
+            if np.any(sel):
+                err = est[sel] - gt[sel]
+                self.absolute[label].append(np.abs(err).astype(np.float32))
+                self.relative[label].append((np.abs(err) / gt[sel]).astype(np.float32))
+
+    def summary(self, labels: tuple[str, ...]) -> dict:
+        """Error statistics over the union of the range bins ``labels``."""
+        rel = [a for label in labels for a in self.relative[label]]
+        rel = np.concatenate(rel) if rel else np.zeros(0)
+        truth = sum(self.truth_pixels[label] for label in labels)
+        return {
+            "range": f"{labels[0].split('-')[0]}-{labels[-1].split('-')[1]}",
+            "frames": self.frames,
+            "median_rel_error": float(np.median(rel)) if rel.size else None,
+            "p95_rel_error": float(np.percentile(rel, 95)) if rel.size else None,
+            "valid_share": float(rel.size / truth) if truth else 0.0,
+        }
+
+    def rows(self, robot: str, rig: str) -> list[dict]:
+        out = []
+        for label in DEPTH_BIN_LABELS:
+            rel = np.concatenate(self.relative[label]) if self.relative[label] else np.zeros(0)
+            ab = np.concatenate(self.absolute[label]) if self.absolute[label] else np.zeros(0)
+            truth = self.truth_pixels[label]
+            out.append(
+                {
+                    "robot": robot,
+                    "rig": rig,
+                    "range": label,
+                    "frames": self.frames,
+                    "pixels_scored": int(rel.size),
+                    "valid_share": float(rel.size / truth) if truth else 0.0,
+                    "median_rel_error": float(np.median(rel)) if rel.size else None,
+                    "p95_rel_error": float(np.percentile(rel, 95)) if rel.size else None,
+                    "median_abs_error_m": float(np.median(ab)) if ab.size else None,
+                    "p95_abs_error_m": float(np.percentile(ab, 95)) if ab.size else None,
+                }
+            )
+        return out
+
+
+@dataclass
+class RobotLog:
+    """What one robot's run produced, in simulated time."""
+
+    gt_t: list[float] = field(default_factory=list)
+    gt_pose: list[np.ndarray] = field(default_factory=list)  # (7,) x y z qw qx qy qz, world frame
+    imu_t: list[float] = field(default_factory=list)
+    imu: list[np.ndarray] = field(default_factory=list)  # (6,) accel, gyro (measured)
+    imu_true: list[np.ndarray] = field(default_factory=list)  # (6,) specific force, angular rate (truth)
+    imu_bias: list[np.ndarray] = field(default_factory=list)  # (6,) true accel and gyro biases
+    odom_t: list[float] = field(default_factory=list)
+    odom: list[np.ndarray] = field(default_factory=list)  # (3,) v_x, v_y, yaw rate (measured)
+    frames: int = 0
+    depth_error: dict[str, DepthErrorAccumulator] = field(default_factory=lambda: defaultdict(DepthErrorAccumulator))
+
+
+@dataclass
+class RobotRuntime:
+    robot: Robot
+    lane: Lane
+    imu: ImuModel
+    imu_every: int
+    camera_every: int
+    renderers: list[StereoRenderer]
+    matchers: list[StereoMatcher]
+    odometry: WheelOdometryModel | None
+    odom_every: int
+    log: RobotLog = field(default_factory=RobotLog)
+
+
+class Timers:
+    """Wall-clock seconds spent per part of the run."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    def add(self, part: str, since: float) -> float:
+        now = time.perf_counter()
+        self.seconds[part] += now - since
+        return now
+
+
+ProgressCallback = Callable[[float, dict[str, str]], None]
+
+
+class Run:
+    """One scenario run. ``execute()`` runs it; afterwards the attributes hold everything
+    :mod:`sim.results` writes. A failure mid-run leaves what was produced so far in place."""
+
+    def __init__(self, scenario: Scenario, recorder: Recorder | None = None):
+        self.scenario = scenario
+        self.streams = RandomStreams(scenario.seed)
+        self.timers = Timers()
+        self.recorder = recorder
+        self.env = simpy.Environment()
+        self.sim_time = 0.0
+        self.wall_s = 0.0
+        t0 = time.perf_counter()
+        tags = scenario.assigned_tag_ids()
+        self.terrain: Terrain = generate_terrain(scenario.terrain, self.streams.rng("terrain"), self._keep_clear())
+        robots = [make_robot(cfg, tags[cfg.name]) for cfg in scenario.robots]
+        self.world: World = build_world(scenario, self.terrain, robots)
+        t0 = self.timers.add("setup", t0)
+        self.tick_s = 1.0 / scenario.physics.control_rate_hz
+        self.substeps = round(self.tick_s / scenario.physics.timestep_s)
+        self.robots = {r.name: self._runtime(r) for r in robots}
+        if self.recorder is not None:
+            self.recorder.log_world(self.terrain, self.world)
+        self.timers.add("setup", t0)
+
+    def _keep_clear(self) -> list[tuple[tuple[float, float], float]]:
+        clear = self.scenario.terrain.rocks.clearance_m
+        discs = []
+        for cfg in self.scenario.robots:
+            discs.append((cfg.start.xy, clear))
+            points = [cfg.start.xy] + [w.xy for w in cfg.route.waypoints]
+            for (x0, y0), (x1, y1) in zip(points, points[1:]):  # the straight legs between waypoints
+                n = max(1, int(math.hypot(x1 - x0, y1 - y0) / clear))
+                discs += [((x0 + (x1 - x0) * i / n, y0 + (y1 - y0) * i / n), clear) for i in range(n + 1)]
+        return discs
+
+    def _every(self, rate_hz: float, what: str) -> int:
+        ticks = self.scenario.physics.control_rate_hz / rate_hz
+        if abs(ticks - round(ticks)) > 1e-6 * ticks or round(ticks) < 1:
+            raise ValueError(
+                f"{what} rate {rate_hz:g} Hz must divide physics.control_rate_hz "
+                f"({self.scenario.physics.control_rate_hz:g} Hz)"
+            )
+        return round(ticks)
+
+    def _runtime(self, robot: Robot) -> RobotRuntime:
+        cfg = robot.cfg
+        cores = cfg.computer.cores or (2 if cfg.is_aerial else 4)
+        lane = Lane(self.env, robot.name, cores, cfg.computer.fpga, ComputeModel(self.scenario.compute), self.scenario.compute.max_queue)
+        preset = cfg.imu.preset or ("adis16407" if cfg.is_aerial else "xsens_mti10")
+        imu = ImuModel(IMU_PRESETS[preset], cfg.imu.rate_hz, self.streams.rng("imu", robot.name))
+        odometry = None
+        if not cfg.is_aerial:
+            odometry = WheelOdometryModel(cfg.wheel_odometry, self.streams.rng("wheel_odometry", robot.name))
+        renderers = [StereoRenderer(self.world.model, rig, cfg.camera) for rig in robot.stereo_rigs]
+        matchers = [StereoMatcher(_calibration(rig)) for rig in robot.stereo_rigs]
+        return RobotRuntime(
+            robot=robot,
+            lane=lane,
+            imu=imu,
+            imu_every=self._every(cfg.imu.rate_hz, f"robots.{robot.name}.imu"),
+            camera_every=self._every(cfg.camera.rate_hz, f"robots.{robot.name}.camera"),
+            renderers=renderers,
+            matchers=matchers,
+            odometry=odometry,
+            odom_every=self._every(cfg.wheel_odometry.rate_hz, f"robots.{robot.name}.wheel_odometry"),
+        )
+
+    # ------------------------------------------------------------------ the loop
+
+    def execute(self, progress: ProgressCallback | None = None, progress_every_s: float = 0.5) -> None:
+        start = time.perf_counter()
+        process = self.env.process(self._physics(progress, progress_every_s))
+        try:
+            self.env.run(until=process)
+        finally:
+            self.sim_time = self.env.now
+            self.wall_s = time.perf_counter() - start + self.timers.seconds["setup"]
+            for runtime in self.robots.values():
+                for renderer in runtime.renderers:
+                    renderer.close()
+
+    def _physics(self, progress: ProgressCallback | None, progress_every_s: float):
+        model, data = self.world.model, self.world.data
+        duration = self.scenario.duration_s
+        gt_every = max(1, round(self.scenario.physics.control_rate_hz / GROUND_TRUTH_RATE_HZ))
+        progress_every = max(1, round(progress_every_s / self.tick_s))
+        tick = 0
+        self._sample(tick, gt_every)
+        while tick * self.tick_s < duration - 1e-9:
+            t = time.perf_counter()
+            for runtime in self.robots.values():
+                runtime.robot.control(self.env.now, self.terrain)
+            t = self.timers.add("control", t)
+            mujoco.mj_step(model, data, nstep=self.substeps)
+            self.timers.add("physics", t)
+            tick += 1
+            yield self.env.timeout(self.tick_s)
+            self._sample(tick, gt_every)
+            if progress is not None and tick % progress_every == 0:
+                progress(self.env.now, self.statuses())
+            if all(r.robot.finished for r in self.robots.values()):
+                break
+        # let jobs that are already running finish their compute time
+        yield self.env.timeout(max((r.lane.compute.cfg.stages.stereo_s for r in self.robots.values()), default=0.0))
+        if progress is not None:
+            progress(self.env.now, self.statuses())
+
+    def statuses(self) -> dict[str, str]:
+        return {name: r.robot.status for name, r in self.robots.items()}
+
+    def _sample(self, tick: int, gt_every: int) -> None:
+        now = self.env.now
+        data = self.world.data
+        for runtime in self.robots.values():
+            robot, log = runtime.robot, runtime.log
+            t = time.perf_counter()
+            if tick % gt_every == 0:
+                pos, quat = robot.pose()
+                log.gt_t.append(now)
+                log.gt_pose.append(np.concatenate([pos, quat]))
+                if self.recorder is not None:
+                    self.recorder.log_pose(robot.name, now, pos, quat)
+            if tick % runtime.imu_every == 0:
+                specific_force = data.sensor(robot.accel_sensor).data.copy()
+                rate = data.sensor(robot.gyro_sensor).data.copy()
+                accel, gyro = runtime.imu.measure(specific_force, rate)
+                log.imu_t.append(now)
+                log.imu.append(np.concatenate([accel, gyro]))
+                log.imu_true.append(np.concatenate([specific_force, rate]))
+                log.imu_bias.append(np.concatenate([runtime.imu.accel_bias, runtime.imu.gyro_bias]))
+            if runtime.odometry is not None and tick % runtime.odom_every == 0:
+                log.odom_t.append(now)
+                log.odom.append(runtime.odometry.measure(robot.wheel_states()))
+            t = self.timers.add("sensors", t)
+            if tick % runtime.camera_every == 0:
+                self._capture(runtime, tick // runtime.camera_every, now)
+
+    def _capture(self, runtime: RobotRuntime, frame: int, now: float) -> None:
+        camera = runtime.robot.cfg.camera
+        every = camera.depth_ground_truth_every
+        with_depth = every > 0 and frame % every == 0
+        runtime.log.frames += 1
+        for renderer, matcher, rig in zip(runtime.renderers, runtime.matchers, runtime.robot.stereo_rigs):
+            t = time.perf_counter()
+            stereo = renderer.render(self.world.data, with_depth=with_depth)
+            self.timers.add("rendering", t)
+            if self.recorder is not None and frame % self.scenario.output.recording_image_every == 0:
+                t = time.perf_counter()
+                self.recorder.log_frame(runtime.robot.name, rig, now, stereo)
+                self.timers.add("recording", t)
+            runtime.lane.submit(
+                "stereo",
+                work=lambda m=matcher, s=stereo: self._timed("stereo", m.depth, s.left, s.right),
+                on_done=lambda depth, t_done, r=runtime, s=stereo, g=rig: self._stereo_done(r, g, s, depth),
+                device=Device.FPGA,
+            )
+
+    def _timed(self, part: str, fn, *args):
+        t = time.perf_counter()
+        out = fn(*args)
+        self.timers.add(part, t)
+        return out
+
+    def _stereo_done(self, runtime: RobotRuntime, rig: StereoRig, stereo, depth: np.ndarray) -> None:
+        if stereo.depth is not None:
+            t = time.perf_counter()
+            runtime.log.depth_error[rig.name].add(depth, stereo.depth)
+            self.timers.add("evaluation", t)
+
+
+def _calibration(rig: StereoRig) -> StereoCalibration:
+    return StereoCalibration.from_intrinsics(rig.intrinsics, rig.baseline_m, rig.width, rig.height)

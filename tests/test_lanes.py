@@ -1,0 +1,71 @@
+import simpy
+import pytest
+
+from sim.lanes import ComputeModel, Device, Lane, Priority
+from sim.scenario import ComputeConfig
+
+
+def make_lane(env, cores=1, fpga=False, max_queue=10, **cfg):
+    return Lane(env, "r", cores=cores, fpga=fpga, compute=ComputeModel(ComputeConfig(**cfg)), max_queue=max_queue)
+
+
+def test_job_result_appears_after_modelled_cost():
+    env = simpy.Environment()
+    lane = make_lane(env, stages={"stereo_s": 0.25})
+    seen = []
+    lane.submit("stereo", lambda: 42, lambda result, t: seen.append((result, t)))
+    env.run()
+    assert seen == [(42, pytest.approx(0.25))]
+
+
+def test_jobs_queue_on_one_core_and_priorities_order_them():
+    env = simpy.Environment()
+    lane = make_lane(env, stages={"stereo_s": 1.0})
+    done = []
+    lane.submit("stereo", lambda: "a", lambda r, t: done.append((r, t)))
+    # both wait behind "a"; the real-time one goes first although submitted later
+    lane.submit("stereo", lambda: "bg", lambda r, t: done.append((r, t)), priority=Priority.BACKGROUND)
+    lane.submit("stereo", lambda: "rt", lambda r, t: done.append((r, t)))
+    env.run()
+    assert done == [("a", 1.0), ("rt", 2.0), ("bg", 3.0)]
+    row = lane.stats(3.0)[0]
+    assert row["completed"] == 3 and row["queue_delay_max_s"] == pytest.approx(2.0)
+    assert lane.utilization(3.0)[Device.CPU] == pytest.approx(1.0)
+
+
+def test_full_realtime_queue_drops_new_jobs():
+    env = simpy.Environment()
+    lane = make_lane(env, max_queue=1, stages={"stereo_s": 1.0})
+    results = [lane.submit("stereo", lambda: None) for _ in range(4)]
+    env.run()
+    # one runs, one waits, the other two are dropped
+    assert [r is None for r in results] == [False, False, True, True]
+    row = lane.stats(2.0)[0]
+    assert (row["submitted"], row["completed"], row["dropped"]) == (4, 2, 2)
+
+
+def test_fpga_runs_beside_the_cpu_and_falls_back_when_absent():
+    env = simpy.Environment()
+    lane = make_lane(env, fpga=True, stages={"stereo_s": 1.0})
+    ends = []
+    lane.submit("stereo", lambda: None, lambda r, t: ends.append(t), device=Device.FPGA)
+    lane.submit("stereo", lambda: None, lambda r, t: ends.append(t), device=Device.CPU)
+    env.run()
+    assert ends == [1.0, 1.0]
+    assert make_lane(simpy.Environment()).device_for(Device.FPGA) == Device.CPU
+
+
+def test_measured_model_scales_wall_time():
+    env = simpy.Environment()
+    lane = make_lane(env, model="measured", measured_scale=1000.0)
+    total = []
+    lane.submit("stereo", lambda: sum(range(200000)), lambda r, t: total.append(t))
+    env.run()
+    record = lane._stages["stereo"].records[0]
+    assert record.wall_s > 0
+    assert total[0] == pytest.approx(record.wall_s * 1000.0)
+
+
+def test_unknown_stage_is_named():
+    with pytest.raises(KeyError, match="known stages"):
+        ComputeModel(ComputeConfig()).cost("teleport", 0.0)
