@@ -1,0 +1,458 @@
+"""Simulated sensors: IMU noise model, stereo rendering, wheel odometry (issue 2 §5).
+
+- :class:`ImuModel` turns MuJoCo's true specific force and angular rate (its
+  ``accelerometer`` already includes gravity; MJCF ``noise`` is metadata only, design
+  notes §6) into measurements with white noise and bias random walks, after the
+  datasheets of the thesis's IMUs (7.1): Xsens MTi-10 (rovers), ADIS16407 (ARDEA).
+- :class:`StereoRenderer` renders a rectified pinhole pair (:class:`~sim.camera_rig.StereoRig`)
+  offscreen, grey or RGB, plus the left camera's ground-truth z-depth, fast on CPU
+  (llvmpipe): no shadows, no reflections, no MSAA, and depth read from the same pass as
+  the left image (no extra depth-only render).
+- :class:`WheelOdometryModel` fits the planar body velocity to the wheels' contact-point
+  velocities by least squares (steered and skid-steered wheels alike); it sees the slip
+  the physics produces, because it uses wheel speeds, not ground speed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar, Protocol, Self
+
+import cv2
+import mujoco
+import numpy as np
+
+from sim.camera_rig import StereoRig
+from sim.scenario import CameraConfig, WheelOdometryConfig
+
+__all__ = [
+    "IMU_PRESETS",
+    "ImuModel",
+    "ImuSpec",
+    "SensorError",
+    "StereoFrame",
+    "StereoRenderer",
+    "WheelLike",
+    "WheelOdometryModel",
+    "body_velocity_from_wheels",
+]
+
+#: MuJoCo draws the skybox at 0.5..1 x the far plane, with depth: rendering with the far
+#: plane at this multiple of ``CameraConfig.zfar_m`` puts the sky well beyond ``zfar_m``,
+#: so ground-truth depth beyond ``zfar_m`` (sky, or geometry out of range) becomes inf.
+SKY_FAR_FACTOR = 8.0
+G0 = 9.80665  # standard gravity, for datasheet values in g
+DEG = math.pi / 180.0
+
+
+class SensorError(ValueError):
+    """A sensor that cannot be built or used as asked; the message says what was expected."""
+
+
+# =========================================================================== IMU
+
+
+@dataclass(frozen=True)
+class ImuSpec:
+    """Noise parameters of a 3-axis IMU, SI units, per axis (1 sigma).
+
+    ``*_noise_density`` is the white-noise density (rad/s/sqrt(Hz), m/s^2/sqrt(Hz)): a
+    sample at rate ``r`` has std ``density * sqrt(r)``. ``*_bias_instability`` is the
+    datasheet's in-run bias stability; the model turns it into a bias random walk whose
+    std reaches that value after ``bias_walk_horizon_s`` (a common reading of the
+    Allan-deviation floor for MEMS, whose minimum lies at 10^2..10^3 s), so
+    ``*_random_walk = instability / sqrt(horizon)`` (rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz)).
+    ``*_bias_initial_std`` is the turn-on bias spread (datasheet repeatability /
+    initial bias error), drawn once per run.
+    """
+
+    name: str
+    gyro_noise_density: float
+    accel_noise_density: float
+    gyro_bias_instability: float
+    accel_bias_instability: float
+    gyro_bias_initial_std: float
+    accel_bias_initial_std: float
+    bias_walk_horizon_s: float = 100.0
+    source: str = ""
+
+    @property
+    def gyro_random_walk(self) -> float:
+        return self.gyro_bias_instability / math.sqrt(self.bias_walk_horizon_s)
+
+    @property
+    def accel_random_walk(self) -> float:
+        return self.accel_bias_instability / math.sqrt(self.bias_walk_horizon_s)
+
+
+#: Xsens MTi-10 (thesis 7.1, rovers). Xsens MTi 10-series specifications (MTi User
+#: Manual MT0605P, 10-series IMU; values as published for the 4th-generation MTi-10,
+#: quoted from memory of the manual, not re-checked here): gyro noise density
+#: 0.03 deg/s/sqrt(Hz), in-run bias stability 18 deg/h; accelerometer noise density
+#: 80 ug/sqrt(Hz), in-run bias stability 40 ug, bias repeatability (1 yr) 0.03 m/s^2.
+#: Gyro turn-on bias: Xsens knowledge base "Bias repeatability of gyroscopes"
+#: (base.xsens.com/hc/en-us/articles/203307252): +-0.5 deg/s within one year, used as 1 sigma.
+XSENS_MTI10 = ImuSpec(
+    name="xsens_mti10",
+    gyro_noise_density=0.03 * DEG,
+    accel_noise_density=80e-6 * G0,
+    gyro_bias_instability=18.0 * DEG / 3600.0,
+    accel_bias_instability=40e-6 * G0,
+    gyro_bias_initial_std=0.5 * DEG,
+    accel_bias_initial_std=0.03,
+    source="Xsens MTi User Manual MT0605P (MTi 10-series); Xsens KB 203307252",
+)
+
+#: Analog Devices ADIS16407 (thesis 7.1, ARDEA). ADIS16407 data sheet (Analog Devices,
+#: 2011; same inertial core as ADIS16400/16405; values quoted from memory of the data
+#: sheet, not re-checked here): gyro rate noise density 0.05 deg/s/sqrt(Hz) rms,
+#: in-run bias stability 0.007 deg/s (25 deg/h), initial bias error 3 deg/s (1 sigma);
+#: accelerometer noise density 0.5 mg/sqrt(Hz) rms, in-run bias stability 0.2 mg,
+#: initial bias error 50 mg (1 sigma). The initial errors are before the part's
+#: bias-null calibration; a robot that calibrates at start-up sees far less.
+ADIS16407 = ImuSpec(
+    name="adis16407",
+    gyro_noise_density=0.05 * DEG,
+    accel_noise_density=0.5e-3 * G0,
+    gyro_bias_instability=0.007 * DEG,
+    accel_bias_instability=0.2e-3 * G0,
+    gyro_bias_initial_std=3.0 * DEG,
+    accel_bias_initial_std=50e-3 * G0,
+    source="Analog Devices ADIS16407 data sheet (2011)",
+)
+
+IMU_PRESETS: dict[str, ImuSpec] = {s.name: s for s in (XSENS_MTI10, ADIS16407)}
+
+
+class ImuModel:
+    """Accelerometer and gyro measurements from true body-frame specific force and
+    angular rate, sampled at ``rate_hz``:
+
+        a_meas = f_true + b_a + n_a,   w_meas = w_true + b_g + n_g,
+        n ~ N(0, (density * sqrt(rate_hz))^2),   b_{k+1} = b_k + N(0, random_walk^2 / rate_hz).
+
+    Each :meth:`measure` call is one sample: the biases advance by ``dt = 1/rate_hz``
+    first, then the measurement uses them; :attr:`accel_bias` / :attr:`gyro_bias` are
+    the true biases of the latest sample (ground truth for evaluation). Initial biases
+    are drawn from the spec's turn-on spread (times ``initial_bias_scale``).
+    """
+
+    def __init__(self, spec: ImuSpec, rate_hz: float, rng: np.random.Generator, initial_bias_scale: float = 1.0):
+        if rate_hz <= 0:
+            raise SensorError(f"IMU rate_hz must be > 0, got {rate_hz}")
+        self.spec = spec
+        self.rate_hz = float(rate_hz)
+        self.dt = 1.0 / self.rate_hz
+        self.rng = rng
+        sq = math.sqrt(self.rate_hz)
+        sdt = math.sqrt(self.dt)
+        # per-sample std of [accel noise, gyro noise, accel bias step, gyro bias step]
+        self._std = np.repeat(
+            [spec.accel_noise_density * sq, spec.gyro_noise_density * sq, spec.accel_random_walk * sdt, spec.gyro_random_walk * sdt],
+            3,
+        )
+        self._bias = np.concatenate(
+            [
+                rng.normal(0.0, spec.accel_bias_initial_std * initial_bias_scale, 3),
+                rng.normal(0.0, spec.gyro_bias_initial_std * initial_bias_scale, 3),
+            ]
+        )
+        self.samples = 0
+
+    @property
+    def accel_bias(self) -> np.ndarray:
+        """True accelerometer bias (m/s^2, body frame) of the latest sample."""
+        return self._bias[:3].copy()
+
+    @property
+    def gyro_bias(self) -> np.ndarray:
+        """True gyro bias (rad/s, body frame) of the latest sample."""
+        return self._bias[3:].copy()
+
+    @property
+    def accel_noise_std(self) -> float:
+        """Per-sample white-noise std of the accelerometer (m/s^2)."""
+        return float(self._std[0])
+
+    @property
+    def gyro_noise_std(self) -> float:
+        """Per-sample white-noise std of the gyro (rad/s)."""
+        return float(self._std[3])
+
+    def measure(self, specific_force_body: np.ndarray, angular_velocity_body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One sample: ``(accel m/s^2, gyro rad/s)`` in the body (IMU) frame."""
+        n = self.rng.standard_normal(12) * self._std
+        self._bias += n[6:]
+        accel = np.asarray(specific_force_body, dtype=float) + self._bias[:3] + n[:3]
+        gyro = np.asarray(angular_velocity_body, dtype=float) + self._bias[3:] + n[3:6]
+        self.samples += 1
+        return accel, gyro
+
+
+# =========================================================================== stereo rendering
+
+
+@dataclass
+class StereoFrame:
+    """One rendered stereo pair. ``left``/``right``: uint8 (H, W) grey or (H, W, 3) RGB.
+    ``depth``: float32 (H, W) ground-truth z-depth of the left camera in metres (inf
+    beyond ``CameraConfig.zfar_m``, sky included), or None when not requested."""
+
+    left: np.ndarray
+    right: np.ndarray
+    depth: np.ndarray | None = None
+
+
+class _RenderTarget:
+    """One GL context + MuJoCo render context + scene, shared by every
+    :class:`StereoRenderer` of the same model and image size (reference counted)."""
+
+    _registry: ClassVar[dict[tuple[int, int, int], _RenderTarget]] = {}
+
+    @classmethod
+    def acquire(cls, model: mujoco.MjModel, width: int, height: int) -> _RenderTarget:
+        key = (id(model), width, height)
+        target = cls._registry.get(key)
+        if target is None:
+            target = cls(model, width, height)
+            cls._registry[key] = target
+        target.users += 1
+        return target
+
+    def __init__(self, model: mujoco.MjModel, width: int, height: int):
+        self.model = model  # keeps the model alive while the key (its id) is in use
+        self.key = (id(model), width, height)
+        self.width, self.height = width, height
+        self.users = 0
+        glob = model.vis.global_
+        if glob.offwidth < width or glob.offheight < height:
+            glob.offwidth, glob.offheight = max(glob.offwidth, width), max(glob.offheight, height)
+        model.vis.quality.offsamples = 0  # no MSAA (design notes §6): read by MjrContext below
+        self.gl = mujoco.GLContext(width, height)
+        self.gl.make_current()
+        self.context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.context)
+        self.context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
+        self.scene = mujoco.MjvScene(model, maxgeom=10000)
+        self.option = mujoco.MjvOption()
+        self.rect = mujoco.MjrRect(0, 0, width, height)
+        self.rgb = np.empty((height, width, 3), np.uint8)
+        self.zbuf = np.empty((height, width), np.float32)
+
+    def make_current(self) -> None:
+        # always: other code (a mujoco.Renderer, another target) may have switched contexts
+        self.gl.make_current()
+
+    def release(self) -> None:
+        self.users -= 1
+        if self.users > 0:
+            return
+        if _RenderTarget._registry.get(self.key) is self:
+            del _RenderTarget._registry[self.key]
+        self.gl.make_current()  # free the render context's GL objects in their own context
+        self.context.free()
+        self.gl.free()
+
+
+class StereoRenderer:
+    """Renders the rectified stereo pair ``rig`` of a compiled model.
+
+    Intrinsics come from ``rig`` (:attr:`StereoRig.intrinsics`: pinhole, square pixels,
+    principal point at the image centre, which is MuJoCo's camera model); the model's
+    cameras must match it (``fovy == rig.vfov_deg``, right camera at ``+baseline`` along
+    the left camera's x with the same orientation: checked, :class:`SensorError`
+    otherwise). ``camera`` gives the colour mode and the depth range: before each
+    render ``model.vis.map.znear * model.stat.extent`` is set to ``camera.znear_m`` (the
+    near plane is the camera's own even when one model serves cameras with different
+    settings), and the far plane to ``SKY_FAR_FACTOR * camera.zfar_m``; ground-truth
+    depth beyond ``camera.zfar_m`` is reported as ``inf`` (the skybox has depth in
+    MuJoCo, at 0.5..1 x the far plane, and must not pass for terrain).
+
+    Fast on CPU: shadows and reflections off, MSAA off (``vis.quality.offsamples = 0``,
+    set before the render context is made), one GL context per (model, width, height)
+    shared by all renderers, and the ground-truth depth is read from the depth buffer
+    of the left image's own pass. Call :meth:`close` when done (EGL teardown).
+    """
+
+    def __init__(self, model: mujoco.MjModel, rig: StereoRig, camera: CameraConfig):
+        if (rig.width, rig.height) != (camera.width, camera.height):
+            raise SensorError(
+                f"stereo rig {rig.name!r} is {rig.width}x{rig.height} but its camera config asks for "
+                f"{camera.width}x{camera.height}"
+            )
+        self.model = model
+        self.rig = rig
+        self.camera = camera
+        self._cam_ids = tuple(self._camera_id(name) for name in (rig.left_camera, rig.right_camera))
+        for name, cid in zip((rig.left_camera, rig.right_camera), self._cam_ids):
+            fovy = float(model.cam_fovy[cid])
+            if abs(fovy - rig.vfov_deg) > 1e-3:
+                raise SensorError(f"camera {name!r} has fovy {fovy:.6f} deg, rig {rig.name!r} needs {rig.vfov_deg:.6f} deg")
+            if hasattr(model, "cam_sensorsize") and np.any(model.cam_sensorsize[cid] > 0):
+                raise SensorError(f"camera {name!r} uses sensorsize/focal intrinsics; expected a plain fovy pinhole")
+        self._mjv_cams = []
+        for cid in self._cam_ids:
+            cam = mujoco.MjvCamera()
+            cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
+            cam.fixedcamid = cid
+            self._mjv_cams.append(cam)
+        self._geometry_checked = False
+        self._target: _RenderTarget | None = _RenderTarget.acquire(model, rig.width, rig.height)
+
+    def _camera_id(self, name: str) -> int:
+        cid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+        if cid < 0:
+            names = [self.model.camera(i).name for i in range(self.model.ncam)]
+            raise SensorError(f"stereo rig {self.rig.name!r}: no camera {name!r} in the model; cameras: {names}")
+        return cid
+
+    @property
+    def near_m(self) -> float:
+        """The near plane the model currently renders with (``vis.map.znear * stat.extent``)."""
+        return float(self.model.vis.map.znear * self.model.stat.extent)
+
+    @property
+    def far_m(self) -> float:
+        """The far clipping plane the model renders with: ``SKY_FAR_FACTOR * camera.zfar_m``."""
+        return float(self.model.vis.map.zfar * self.model.stat.extent)
+
+    def _check_geometry(self, data: mujoco.MjData) -> None:
+        left, right = self._cam_ids
+        R_l = data.cam_xmat[left].reshape(3, 3)
+        R_r = data.cam_xmat[right].reshape(3, 3)
+        if not np.any(R_l):  # kinematics not computed yet: check on a later frame
+            return
+        rel = R_l.T @ (data.cam_xpos[right] - data.cam_xpos[left])  # MuJoCo camera frame: x right
+        expected = np.array([self.rig.baseline_m, 0.0, 0.0])
+        angle = np.linalg.norm(cv2.Rodrigues(R_l.T @ R_r)[0])
+        if np.linalg.norm(rel - expected) > 1e-3 or angle > 1e-3:
+            raise SensorError(
+                f"stereo rig {self.rig.name!r}: right camera must sit at +baseline ({self.rig.baseline_m} m) along "
+                f"the left camera's x with the same orientation; found offset {rel.round(4).tolist()} m "
+                f"and relative rotation {angle:.4f} rad"
+            )
+        self._geometry_checked = True
+
+    def render(self, data: mujoco.MjData, with_depth: bool = False) -> StereoFrame:
+        """Render the pair at the state in ``data`` (kinematics must be current, as after ``mj_step``)."""
+        t = self._target
+        if t is None:
+            raise SensorError(f"StereoRenderer of rig {self.rig.name!r} was closed")
+        if not self._geometry_checked:
+            self._check_geometry(data)
+        m = self.model
+        m.vis.map.znear = self.camera.znear_m / m.stat.extent
+        m.vis.map.zfar = SKY_FAR_FACTOR * self.camera.zfar_m / m.stat.extent
+        t.make_current()
+        scene = t.scene
+        mujoco.mjv_updateScene(m, data, t.option, None, self._mjv_cams[0], mujoco.mjtCatBit.mjCAT_ALL, scene)
+        scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        mujoco.mjr_render(t.rect, scene, t.context)
+        mujoco.mjr_readPixels(t.rgb, t.zbuf if with_depth else None, t.rect, t.context)
+        left = self._image(t.rgb)
+        depth = self._linear_depth(t.zbuf) if with_depth else None
+        # the right camera sees the same scene: only the camera changes
+        mujoco.mjv_updateCamera(m, data, self._mjv_cams[1], scene)
+        mujoco.mjr_render(t.rect, scene, t.context)
+        mujoco.mjr_readPixels(t.rgb, None, t.rect, t.context)
+        right = self._image(t.rgb)
+        return StereoFrame(left, right, depth)
+
+    def _image(self, rgb: np.ndarray) -> np.ndarray:
+        # OpenGL rows run bottom-up: flip to image rows
+        if self.camera.color == "grey":
+            return cv2.flip(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), 0)
+        return cv2.flip(rgb, 0)
+
+    def _linear_depth(self, zbuf: np.ndarray) -> np.ndarray:
+        """Window depth (reversed z, 1 at the near plane, 0 at the far plane; MuJoCo's
+        ``mjDEPTH_ZEROFAR`` read-out, as in ``mujoco.Renderer``) to eye-space z in metres."""
+        near = self.near_m
+        far = self.far_m
+        c = 0.5 * (far + near) / (far - near) - 0.5  # = near / (far - near)
+        d = far * near / (far - near)
+        z = d / (zbuf.astype(np.float64) + c)
+        z[z > self.camera.zfar_m] = np.inf  # sky, or nothing within the camera's range
+        return cv2.flip(z.astype(np.float32), 0)
+
+    def close(self) -> None:
+        if self._target is not None:
+            self._target.release()
+            self._target = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# =========================================================================== wheel odometry
+
+
+class WheelLike(Protocol):
+    """What wheel odometry reads of a wheel (``sim.robots.base.WheelState`` fits)."""
+
+    position_body: np.ndarray  # (3,) wheel centre on its steering axis, body frame (x fwd, y left, z up)
+    steer_angle: float  # rad, 0 = rolling along body x, positive to the left
+    angular_speed: float  # rad/s about the axle, positive rolls forward
+    radius: float  # m
+
+
+def body_velocity_from_wheels(wheels: Sequence[WheelLike]) -> tuple[np.ndarray, float]:
+    """Planar body velocity ``(v_x, v_y, yaw_rate)`` from wheel states, and the RMS
+    residual (m/s) of the fit: a measure of the slip the wheels' kinematics imply.
+
+    Each wheel ``i`` at ``(x_i, y_i)`` with steer angle ``delta_i``, angular speed
+    ``omega_i`` and radius ``r_i`` says that its contact point moves at ``r_i omega_i``
+    along its heading ``(cos delta_i, sin delta_i)`` and not at all sideways. A rigid
+    body moving at ``(v_x, v_y, Omega)`` moves that point at
+    ``(v_x - Omega y_i, v_y + Omega x_i)``. Both components for all wheels give 2N
+    linear equations in three unknowns, solved by least squares. For steered wheels
+    that agree (Ackermann, crab, point turn) the fit is exact; for skid steering the
+    wheels cannot agree, and the least-squares answer is the motion with the least
+    total contact slip (its yaw rate is the differential-drive one scaled by
+    ``sum y^2 / sum (x^2 + y^2)``, the usual effective-track-width correction).
+    """
+    rows = []
+    rhs = []
+    for w in wheels:
+        x, y = float(w.position_body[0]), float(w.position_body[1])
+        c, s = math.cos(w.steer_angle), math.sin(w.steer_angle)
+        speed = float(w.radius) * float(w.angular_speed)
+        # longitudinal: c (v_x - W y) + s (v_y + W x) = speed; lateral: -s (...) + c (...) = 0
+        rows.append((c, s, c * -y + s * x))
+        rhs.append(speed)
+        rows.append((-s, c, -s * -y + c * x))
+        rhs.append(0.0)
+    if not rows:
+        raise SensorError("wheel odometry needs at least one wheel, got none")
+    A = np.asarray(rows)
+    b = np.asarray(rhs)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    residual = float(np.sqrt(np.mean((A @ sol - b) ** 2)))
+    return sol, residual
+
+
+class WheelOdometryModel:
+    """Wheel odometry: :func:`body_velocity_from_wheels` plus white noise
+    (``cfg.speed_noise_std_mps`` on v_x and v_y, ``cfg.yaw_rate_noise_std_rps`` on the
+    yaw rate). :meth:`measure` returns ``np.array([v_x, v_y, yaw_rate])`` in the body
+    frame; :attr:`last_true` (noise-free fit) and :attr:`last_residual_mps` (slip
+    indicator) are kept for evaluation."""
+
+    def __init__(self, cfg: WheelOdometryConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+        self._std = np.array([cfg.speed_noise_std_mps, cfg.speed_noise_std_mps, cfg.yaw_rate_noise_std_rps])
+        self.last_true = np.zeros(3)
+        self.last_residual_mps = 0.0
+
+    def measure(self, wheels: Sequence[WheelLike]) -> np.ndarray:
+        velocity, residual = body_velocity_from_wheels(wheels)
+        self.last_true = velocity
+        self.last_residual_mps = residual
+        return velocity + self.rng.standard_normal(3) * self._std

@@ -1,0 +1,301 @@
+"""Dense stereo: SGBM disparity and depth, and the stereo error model of thesis 5.1.1.
+
+Pure module: numpy and OpenCV only. Images in, arrays out; no simulator, no ground truth.
+
+Frames and conventions
+----------------------
+Rectified pinhole pair, left camera as the reference, camera frame as OpenCV: x right,
+y down, z forward. The right camera sits at ``+baseline`` along the left camera's x.
+Pixel coordinates ``(u, v)`` are column and row indices (pixel centres at integers);
+``cx, cy`` is the principal point in those coordinates. Disparity ``d = u_left - u_right``
+in pixels (>= 0 for points in front of the rig). Depth is the z coordinate (z-depth),
+not the ray length. Invalid pixels are NaN; a valid disparity of 0 is depth ``inf``
+(a point at infinity, thesis 5.1.1: distinguishable from missing data).
+
+Error model (thesis eq. 5.2 and 5.4, after Hirschmüller 2003 and Hirschmüller et al. 2002)
+-------------------------------------------------------------------------------------------
+First-order propagation of independent Gaussian pixel noise ``Δp`` (default 0.5 px,
+thesis 5.1.1) on each of the four image coordinates of a stereo correspondence
+``(u_l, v_l, u_r, v_r)`` through triangulation
+
+    z = f b / (u_l - u_r),   x = (u_l - cx) z / f,   y = ((v_l + v_r) / 2 - cy) z / f.
+
+With this model, eq. 5.2a-c follow exactly (y from the mean of both rows gives the
+``b^2 / 2`` term of 5.2b). Eq. 5.4 is the same propagation applied to the distance of two
+independently triangulated points. The printed thesis has two slips in eq. 5.4b: ``t``
+for ``b`` (as the brief notes) and ``+ (q_z - p_z) q_z`` where the derivation (and the
+p <-> q symmetry with eq. 5.4e) gives ``- (q_z - p_z) q_z``. This module uses the derived
+form; ``tests/test_stereo.py`` checks it against a Monte-Carlo propagation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+#: Pixel error of the thesis (5.1.1: calibration RMSE up to 0.46 px, 0.5 px assumed).
+DEFAULT_PIXEL_ERROR = 0.5
+
+
+class StereoException(Exception):
+    """Bad input to the stereo functions (shapes, calibration, parameters)."""
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+@dataclass(frozen=True)
+class StereoCalibration:
+    """A rectified pinhole stereo pair: focal length and principal point in pixels, baseline in metres."""
+
+    focal_px: float
+    cx: float
+    cy: float
+    baseline_m: float
+    width: int
+    height: int
+
+    def __post_init__(self):
+        if not (self.focal_px > 0 and self.baseline_m > 0 and self.width > 0 and self.height > 0):
+            raise StereoException(
+                f"focal_px, baseline_m, width and height must be positive, got "
+                f"f={self.focal_px}, b={self.baseline_m}, {self.width}x{self.height}"
+            )
+
+    @classmethod
+    def from_intrinsics(cls, K: np.ndarray, baseline_m: float, width: int, height: int) -> StereoCalibration:
+        """From a 3x3 camera matrix with square pixels and no skew (``K[0,0] == K[1,1]``)."""
+        K = np.asarray(K, dtype=float)
+        if K.shape != (3, 3):
+            raise StereoException(f"K must be 3x3, got shape {K.shape}")
+        fx, fy = K[0, 0], K[1, 1]
+        if not math.isclose(fx, fy, rel_tol=1e-6) or abs(K[0, 1]) > 1e-9:
+            raise StereoException(f"expected square pixels and no skew, got fx={fx}, fy={fy}, skew={K[0, 1]}")
+        return cls(float(fx), float(K[0, 2]), float(K[1, 2]), float(baseline_m), int(width), int(height))
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.focal_px, 0, self.cx], [0, self.focal_px, self.cy], [0, 0, 1.0]])
+
+    @property
+    def fb(self) -> float:
+        """Focal length times baseline (px m): depth = fb / disparity."""
+        return self.focal_px * self.baseline_m
+
+    def disparity_for_depth(self, depth_m: float | np.ndarray) -> float | np.ndarray:
+        """``d = f b / z`` in pixels."""
+        return self.fb / np.asarray(depth_m, dtype=float)
+
+
+# --------------------------------------------------------------------------- matching
+
+
+class StereoMatcher:
+    """OpenCV semi-global matching (``StereoSGBM``, 3-way mode) with defaults for
+    320x240 .. 640x480 grey images.
+
+    ``numDisparities`` covers depths from ``min_depth_m`` to infinity (rounded up to a
+    multiple of 16); ``P1 = 8 cn w^2`` and ``P2 = 32 cn w^2`` for block size ``w``
+    (OpenCV's recommended smoothness penalties); a uniqueness check, a left-right
+    consistency check and a speckle filter remove most mismatches. RGB input is
+    converted to grey first (cn = 1), as the thesis's rovers match grey images.
+    """
+
+    def __init__(
+        self,
+        calibration: StereoCalibration,
+        *,
+        min_depth_m: float = 0.5,
+        block_size: int = 5,
+        uniqueness_ratio: int = 10,
+        speckle_window_size: int = 100,
+        speckle_range: int = 2,
+        disp12_max_diff: int = 1,
+        pre_filter_cap: int = 31,
+        mode: int = cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    ):
+        if min_depth_m <= 0:
+            raise StereoException(f"min_depth_m must be > 0, got {min_depth_m}")
+        if block_size < 1 or block_size % 2 == 0:
+            raise StereoException(f"block_size must be odd and >= 1, got {block_size}")
+        self.calibration = calibration
+        self.min_depth_m = float(min_depth_m)
+        max_disparity = calibration.fb / min_depth_m
+        self.num_disparities = int(16 * math.ceil(max_disparity / 16))
+        if self.num_disparities >= calibration.width:
+            raise StereoException(
+                f"min_depth_m={min_depth_m} needs {self.num_disparities} disparities, "
+                f"more than the image width {calibration.width}"
+            )
+        cn = 1
+        self._sgbm = cv2.StereoSGBM_create(
+            minDisparity=0,
+            numDisparities=self.num_disparities,
+            blockSize=block_size,
+            P1=8 * cn * block_size**2,
+            P2=32 * cn * block_size**2,
+            disp12MaxDiff=disp12_max_diff,
+            preFilterCap=pre_filter_cap,
+            uniquenessRatio=uniqueness_ratio,
+            speckleWindowSize=speckle_window_size,
+            speckleRange=speckle_range,
+            mode=mode,
+        )
+
+    def _grey(self, image: np.ndarray, which: str) -> np.ndarray:
+        image = np.asarray(image)
+        if image.ndim == 3 and image.shape[2] == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        if image.ndim != 2 or image.shape != (self.calibration.height, self.calibration.width):
+            raise StereoException(
+                f"{which} image: expected ({self.calibration.height}, {self.calibration.width}) grey "
+                f"or (..., 3) RGB, got shape {image.shape}"
+            )
+        if image.dtype != np.uint8:
+            raise StereoException(f"{which} image: expected uint8, got {image.dtype}")
+        return image
+
+    def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """Disparity in pixels (float32, 1/16 px resolution); invalid pixels NaN."""
+        raw = self._sgbm.compute(self._grey(left, "left"), self._grey(right, "right"))
+        disp = raw.astype(np.float32) * np.float32(1 / 16)
+        disp[raw < 0] = np.nan  # OpenCV marks invalid as (minDisparity - 1) * 16
+        return disp
+
+    def depth(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        """z-depth of the left camera in metres (float32); NaN invalid, inf at zero disparity."""
+        return disparity_to_depth(self.disparity(left, right), self.calibration)
+
+
+def disparity_to_depth(disparity: np.ndarray, calibration: StereoCalibration) -> np.ndarray:
+    """``z = f b / d``; NaN stays NaN, ``d <= 0`` gives ``inf``."""
+    disparity = np.asarray(disparity)
+    dtype = disparity.dtype if np.issubdtype(disparity.dtype, np.floating) else np.float64
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = np.where(disparity > 0, calibration.fb / disparity, np.inf).astype(dtype)
+    depth[np.isnan(disparity)] = np.nan
+    return depth
+
+
+def depth_to_points(depth: np.ndarray, calibration: StereoCalibration) -> np.ndarray:
+    """Back-project a z-depth image (H, W) to points (H, W, 3) in the left camera frame
+    (OpenCV: x right, y down, z forward). NaN and inf depths give NaN/inf points."""
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise StereoException(f"depth must be a 2-D image, got shape {depth.shape}")
+    h, w = depth.shape
+    dtype = depth.dtype if np.issubdtype(depth.dtype, np.floating) else np.float64
+    u = (np.arange(w, dtype=dtype) - dtype.type(calibration.cx)) / dtype.type(calibration.focal_px)
+    v = (np.arange(h, dtype=dtype) - dtype.type(calibration.cy)) / dtype.type(calibration.focal_px)
+    out = np.empty((h, w, 3), dtype=dtype)
+    out[..., 2] = depth
+    with np.errstate(invalid="ignore"):
+        out[..., 0] = depth * u[None, :]
+        out[..., 1] = depth * v[:, None]
+    return out
+
+
+def triangulate(
+    u_left: np.ndarray, v_left: np.ndarray, u_right: np.ndarray, v_right: np.ndarray, calibration: StereoCalibration
+) -> np.ndarray:
+    """Triangulate correspondences of a rectified pair, (...,) each -> (..., 3), with
+    ``y`` from the mean row of both images (the model behind eq. 5.2b)."""
+    c = calibration
+    d = np.asarray(u_left, dtype=float) - np.asarray(u_right, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = c.fb / d
+    x = (np.asarray(u_left) - c.cx) * z / c.focal_px
+    y = ((np.asarray(v_left) + np.asarray(v_right)) / 2 - c.cy) * z / c.focal_px
+    return np.stack([x, y, z], axis=-1)
+
+
+# --------------------------------------------------------------------------- error model
+
+
+def point_error(points: np.ndarray, calibration: StereoCalibration, pixel_error: float = DEFAULT_PIXEL_ERROR) -> np.ndarray:
+    """Propagated reconstruction error ``(Δp_x, Δp_y, Δp_z)`` of points (..., 3) in the
+    left camera frame, thesis eq. 5.2a-c (Hirschmüller 2003):
+
+        Δp_x = Δp p_z / (f b) sqrt((b - p_x)^2 + p_x^2)      (5.2a)
+        Δp_y = Δp p_z / (f b) sqrt(2 p_y^2 + b^2 / 2)        (5.2b)
+        Δp_z = Δp p_z^2 / (f b) sqrt(2)                      (5.2c)
+
+    ``f`` focal length in pixels, ``b`` baseline in metres, ``Δp`` pixel error (std).
+    """
+    p = np.asarray(points, dtype=float)
+    if p.shape[-1] != 3:
+        raise StereoException(f"points must have shape (..., 3), got {p.shape}")
+    b, fb = calibration.baseline_m, calibration.fb
+    px, py, pz = p[..., 0], p[..., 1], p[..., 2]
+    k = pixel_error * pz / fb
+    out = np.empty_like(p)
+    out[..., 0] = k * np.sqrt((b - px) ** 2 + px**2)
+    out[..., 1] = k * np.sqrt(2 * py**2 + b**2 / 2)
+    out[..., 2] = k * pz * math.sqrt(2)
+    return out
+
+
+def depth_error(depth: np.ndarray | float, calibration: StereoCalibration, pixel_error: float = DEFAULT_PIXEL_ERROR):
+    """``Δp_z = Δp z^2 sqrt(2) / (f b)``, thesis eq. 5.2c, for a depth (image)."""
+    z = np.asarray(depth, dtype=float)
+    return pixel_error * z**2 * math.sqrt(2) / calibration.fb
+
+
+def max_depth_for_error(calibration: StereoCalibration, max_error_m: float, pixel_error: float = DEFAULT_PIXEL_ERROR) -> float:
+    """The depth at which ``Δp_z`` (eq. 5.2c) reaches ``max_error_m``: the thesis's
+    far-point cut (5.1.1) as a range limit."""
+    return math.sqrt(max_error_m * calibration.fb / (pixel_error * math.sqrt(2)))
+
+
+def cut_far_points(
+    depth: np.ndarray,
+    calibration: StereoCalibration,
+    max_error_m: float = 0.15,
+    pixel_error: float = DEFAULT_PIXEL_ERROR,
+) -> np.ndarray:
+    """Depth with points whose ``Δp_z`` (eq. 5.2c) exceeds ``max_error_m`` set to NaN
+    (thesis 5.1.1: points beyond an error threshold are dropped before mapping; the
+    thesis's 2.5 m (wide) .. 5 m (narrow) view limits correspond to about 0.15 m)."""
+    depth = np.array(depth, copy=True)
+    with np.errstate(invalid="ignore"):
+        depth[~(depth <= max_depth_for_error(calibration, max_error_m, pixel_error))] = np.nan
+    return depth
+
+
+def distance_error(
+    p: np.ndarray, q: np.ndarray, calibration: StereoCalibration, pixel_error: float = DEFAULT_PIXEL_ERROR
+) -> np.ndarray:
+    """Mean error ``Δd`` of the distance ``d = |p - q|`` (eq. 5.3) between two points
+    (..., 3) in the left camera frame, thesis eq. 5.4 (Hirschmüller et al. 2002):
+
+        Δd = Δp / (d f b) sqrt(q_z^2 (A + B + C) + p_z^2 (C + D + E))          (5.4a)
+        A = ((q_x - p_x)(b - q_x) - (q_y - p_y) q_y - (q_z - p_z) q_z)^2        (5.4b)*
+        B = ((q_x - p_x) q_x + (q_y - p_y) q_y + (q_z - p_z) q_z)^2             (5.4c)
+        C = (b (q_y - p_y))^2 / 2                                                (5.4d)
+        D = ((q_x - p_x)(b - p_x) - (q_y - p_y) p_y - (q_z - p_z) p_z)^2        (5.4e)
+        E = ((q_x - p_x) p_x + (q_y - p_y) p_y + (q_z - p_z) p_z)^2             (5.4f)
+
+    (*) The thesis prints ``t`` for ``b`` and ``+ (q_z - p_z) q_z`` in 5.4b; both are
+    slips: the derivation and the p <-> q symmetry with 5.4e give the form above.
+    For ``p == q`` (d = 0) the first-order error is undefined; NaN is returned.
+    """
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    if p.shape[-1] != 3 or q.shape[-1] != 3:
+        raise StereoException(f"p and q must have shape (..., 3), got {p.shape} and {q.shape}")
+    b, fb = calibration.baseline_m, calibration.fb
+    w = q - p
+    wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
+    px, py, pz = p[..., 0], p[..., 1], p[..., 2]
+    qx, qy, qz = q[..., 0], q[..., 1], q[..., 2]
+    A = (wx * (b - qx) - wy * qy - wz * qz) ** 2
+    B = (wx * qx + wy * qy + wz * qz) ** 2
+    C = 0.5 * (b * wy) ** 2
+    D = (wx * (b - px) - wy * py - wz * pz) ** 2
+    E = (wx * px + wy * py + wz * pz) ** 2
+    d = np.sqrt(wx**2 + wy**2 + wz**2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(d > 0, pixel_error / (d * fb) * np.sqrt(qz**2 * (A + B + C) + pz**2 * (C + D + E)), np.nan)
