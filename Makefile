@@ -30,6 +30,7 @@ test-slow: setup
 
 bench: setup
 	$(BIN)/python -m sim.bench scenarios/quickstart.yaml --out results/bench
+	$(BIN)/python -m comms.bench --out results/bench/comms.json
 
 lint: setup
 	$(BIN)/ruff check sim slam comms tests

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 import simpy
@@ -72,8 +73,13 @@ def main() -> None:
     parser.add_argument("--sim-seconds", type=float, default=30.0)
     parser.add_argument("--robots", type=int, default=9)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=None, help="also write the result as JSON to this file")
     args = parser.parse_args()
-    print(json.dumps(run(args.sim_seconds, args.robots, args.seed), indent=2))
+    text = json.dumps(run(args.sim_seconds, args.robots, args.seed), indent=2)
+    print(text)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text + "\n")
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 import traceback
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 from rich.console import Console
@@ -18,7 +18,7 @@ console = Console()
 err_console = Console(stderr=True)
 
 SetOption = Annotated[
-    Optional[list[str]],
+    list[str] | None,
     typer.Option("--set", help="override a scenario key: dotted.key=value (repeatable; robots by name: robots.lru1.route.speed_mps=0.4)"),
 ]
 
@@ -50,8 +50,8 @@ def validate(
 @app.command()
 def run(
     scenario: Annotated[Path, typer.Argument(help="scenario YAML")],
-    out: Annotated[Optional[Path], typer.Option("--out", help="results folder (default results/<name>-seed<seed>)")] = None,
-    seed: Annotated[Optional[int], typer.Option("--seed", help="override the scenario's seed")] = None,
+    out: Annotated[Path | None, typer.Option("--out", help="results folder (default results/<name>-seed<seed>)")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="override the scenario's seed")] = None,
     set_: SetOption = None,
     progress: Annotated[bool, typer.Option(help="show the progress bar")] = True,
 ) -> None:
@@ -104,6 +104,7 @@ def run(
         except Exception:
             error = traceback.format_exc()
     if recorder is not None:
+        recorder.log_link_series(simulation.network.timeseries())
         recorder.close()
     metrics = results.write(simulation, out, error)
     for line in results.summary_lines(metrics):

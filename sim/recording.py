@@ -84,6 +84,23 @@ class Recorder:
             depth = cv2.resize(stereo.depth, size, interpolation=cv2.INTER_NEAREST)
             self.rec.log(f"{base}/depth", rr.DepthImage(depth, meter=1.0))
 
+    def log_link_event(self, event) -> None:
+        """A link going up or down (``comms.LinkEvent``), as a 0/1 series per direction."""
+        self.rec.set_time(TIMELINE, duration=event.t)
+        self.rec.log(f"comms/{event.src}_to_{event.dst}/up", rr.Scalars(float(event.up)))
+
+    def log_link_series(self, series: dict) -> None:
+        """Sampled link throughput and queue bytes from ``Network.timeseries()``."""
+        for link, values in series["links"].items():
+            base = "comms/" + link.replace("->", "_to_")
+            for name in ("throughput_Bps", "queue_bytes"):
+                if name in values:
+                    self.rec.send_columns(
+                        f"{base}/{name}",
+                        indexes=[rr.TimeColumn(TIMELINE, duration=series["t"])],
+                        columns=rr.Scalars.columns(scalars=values[name]),
+                    )
+
     def close(self) -> None:
         for robot, track in self._tracks.items():
             if len(track) > 1:

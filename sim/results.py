@@ -8,6 +8,8 @@
     sensors/<robot>.npz         IMU (measured, true, true biases) and wheel odometry samples
     stereo_depth_error.csv      SGBM depth against rendered ground truth, per robot, rig, range
     lanes.csv                   per robot and stage: jobs, drops, queueing delay, compute time
+    comms_flows.csv             per (src, dst, kind): bytes offered, delivered, dropped by reason, latency
+    comms_links.csv             per link: wire bytes, retransmissions, up fraction, queue occupancy
     routes.csv                  every waypoint of every robot with its outcome
     topdown.png                 terrain, rocks, lander, trajectories and waypoint outcomes
     recording.rrd               rerun recording (see sim.recording)
@@ -26,12 +28,12 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.colors import LightSource  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.colors import LightSource
 
-from sim.runner import Run  # noqa: E402
-from sim.scenario import Scenario, dump_scenario  # noqa: E402
+from sim.runner import Run
+from sim.scenario import Scenario, dump_scenario
 
 STEREO_SUMMARY_BINS = ("2-4m", "4-6m")  # the 2-6 m band the acceptance test uses
 
@@ -79,6 +81,10 @@ def write(run: Run, out: Path, error: str | None = None) -> dict[str, Any]:
     _write_csv(out / "stereo_depth_error.csv", depth_rows)
     _write_csv(out / "lanes.csv", lane_rows)
     _write_csv(out / "routes.csv", route_rows)
+    _write_csv(out / "comms_flows.csv", run.network.to_table())
+    _write_csv(out / "comms_links.csv", run.network.link_table())
+    comms = run.network.to_metrics()
+    comms["raw_equivalent_Bps"] = run.raw_equivalent_load()
     metrics = {
         "scenario": run.scenario.name,
         "seed": run.scenario.seed,
@@ -86,6 +92,7 @@ def write(run: Run, out: Path, error: str | None = None) -> dict[str, Any]:
         "error": error.strip().splitlines()[-1] if error else None,
         "runtime": runtime_metrics(run),
         "robots": robots_metrics,
+        "comms": comms,
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
     if run.scenario.output.topdown_png:

@@ -11,6 +11,7 @@ robot's lane (:mod:`sim.lanes`); the first real job is stereo matching
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections import defaultdict
@@ -21,6 +22,7 @@ import mujoco
 import numpy as np
 import simpy
 
+from comms import Network, StereoStream, raw_stereo_load
 from sim.camera_rig import StereoRig
 from sim.lanes import ComputeModel, Device, Lane
 from sim.recording import Recorder
@@ -34,12 +36,13 @@ from sim.world import World, build_world
 from slam.stereo import StereoCalibration, StereoMatcher
 
 GROUND_TRUTH_RATE_HZ = 50.0
+ANTENNA_HEIGHT_M = {"rover": 1.6, "aerial": 0.3, "lander": 1.8}  # above the body origin / lander base
 DEPTH_BINS_M = (0.0, 2.0, 4.0, 6.0, 10.0, math.inf)
 DEPTH_SAMPLE_STRIDE = 2  # score every 2nd pixel in each direction
 
 
 def _labels() -> list[str]:
-    return [f"{lo:g}-{hi:g}m" if math.isfinite(hi) else f">{lo:g}m" for lo, hi in zip(DEPTH_BINS_M, DEPTH_BINS_M[1:])]
+    return [f"{lo:g}-{hi:g}m" if math.isfinite(hi) else f">{lo:g}m" for lo, hi in itertools.pairwise(DEPTH_BINS_M)]
 
 
 DEPTH_BIN_LABELS = _labels()
@@ -171,8 +174,18 @@ class Run:
         self.tick_s = 1.0 / scenario.physics.control_rate_hz
         self.substeps = round(self.tick_s / scenario.physics.timestep_s)
         self.robots = {r.name: self._runtime(r) for r in robots}
+        self._root_body = {r.name: self._robot_root_body(r) for r in robots}
+        self.network = Network(
+            self.env,
+            scenario.comms,
+            scenario.network_nodes(),
+            self.streams.rng("comms"),
+            positions=self.antenna_positions,
+            line_of_sight=self.line_of_sight,
+        )
         if self.recorder is not None:
             self.recorder.log_world(self.terrain, self.world)
+            self.network.subscribe(self.recorder.log_link_event)
         self.timers.add("setup", t0)
 
     def _keep_clear(self) -> list[tuple[tuple[float, float], float]]:
@@ -181,7 +194,7 @@ class Run:
         for cfg in self.scenario.robots:
             discs.append((cfg.start.xy, clear))
             points = [cfg.start.xy] + [w.xy for w in cfg.route.waypoints]
-            for (x0, y0), (x1, y1) in zip(points, points[1:]):  # the straight legs between waypoints
+            for (x0, y0), (x1, y1) in itertools.pairwise(points):  # the straight legs between waypoints
                 n = max(1, int(math.hypot(x1 - x0, y1 - y0) / clear))
                 discs += [((x0 + (x1 - x0) * i / n, y0 + (y1 - y0) * i / n), clear) for i in range(n + 1)]
         return discs
@@ -218,6 +231,53 @@ class Run:
             odom_every=self._every(cfg.wheel_odometry.rate_hz, f"robots.{robot.name}.wheel_odometry"),
         )
 
+    # ------------------------------------------------------------------ network geometry
+
+    def _robot_root_body(self, robot: Robot) -> int:
+        body = int(self.world.model.site(robot.imu_site).bodyid[0])
+        return int(self.world.model.body_rootid[body])
+
+    def antenna_positions(self) -> dict[str, np.ndarray]:
+        """World positions of the nodes' antennas: above each robot's body origin, on the lander's deck."""
+        out = {}
+        for name, runtime in self.robots.items():
+            pos, _ = runtime.robot.pose()
+            lift = ANTENNA_HEIGHT_M["aerial" if runtime.robot.cfg.is_aerial else "rover"]
+            out[name] = pos + np.array([0.0, 0.0, lift])
+        lander = self.terrain.lander
+        if lander is not None:
+            out["lander"] = np.array([*lander.xy, lander.base_z + ANTENNA_HEIGHT_M["lander"]])
+        return out
+
+    def line_of_sight(self, a: str, b: str) -> bool:
+        """True if no terrain, rock, lander or third robot cuts the line between the antennas (``mj_ray``)."""
+        model, data = self.world.model, self.world.data
+        pos = self.antenna_positions()
+        pa, pb = pos[a], pos[b]
+        geom = np.zeros(1, dtype=np.int32)
+        exclude = self._root_body.get(a, -1)
+        fraction = mujoco.mj_ray(model, data, pa, pb - pa, None, 1, exclude, geom)
+        if not 0 <= fraction < 1:
+            return True
+        hit_root = int(model.body_rootid[model.geom_bodyid[geom[0]]])
+        return b in self._root_body and hit_root == self._root_body[b]
+
+    def raw_equivalent_load(self) -> float:
+        """Bytes/s the team would need to stream its raw stereo images (thesis 8.4)."""
+        streams = []
+        for runtime in self.robots.values():
+            cam = runtime.robot.cfg.camera
+            streams.append(
+                StereoStream(
+                    width=cam.width,
+                    height=cam.height,
+                    rate_hz=cam.rate_hz,
+                    channels=3 if cam.color == "rgb" else 1,
+                    pairs=len(runtime.robot.stereo_rigs),
+                )
+            )
+        return raw_stereo_load(streams)
+
     # ------------------------------------------------------------------ the loop
 
     def execute(self, progress: ProgressCallback | None = None, progress_every_s: float = 0.5) -> None:
@@ -228,9 +288,13 @@ class Run:
         finally:
             self.sim_time = self.env.now
             self.wall_s = time.perf_counter() - start + self.timers.seconds["setup"]
-            for runtime in self.robots.values():
-                for renderer in runtime.renderers:
-                    renderer.close()
+            self.close()
+
+    def close(self) -> None:
+        """Release the renderers' GL contexts (``execute`` does this when it ends)."""
+        for runtime in self.robots.values():
+            for renderer in runtime.renderers:
+                renderer.close()
 
     def _physics(self, progress: ProgressCallback | None, progress_every_s: float):
         model, data = self.world.model, self.world.data

@@ -26,6 +26,8 @@ from pydantic import (
     model_validator,
 )
 
+from comms import CommsConfig, CommsError
+
 NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
 
 PositiveFloat = Annotated[float, Field(gt=0)]
@@ -276,6 +278,15 @@ class Scenario(StrictModel):
     physics: PhysicsConfig = PhysicsConfig()
     compute: ComputeConfig = ComputeConfig()
     output: OutputConfig = OutputConfig()
+    comms: CommsConfig = CommsConfig()
+
+    def network_nodes(self) -> list[str]:
+        """Nodes of the network: the robots, the lander if there is one, and what the
+        comms section adds (a ground station)."""
+        nodes = [r.name for r in self.robots]
+        if self.terrain.lander is not None:
+            nodes.append("lander")
+        return nodes + self.comms.extra_nodes()
 
     @model_validator(mode="after")
     def _check_team(self) -> Scenario:
@@ -303,6 +314,12 @@ class Scenario(StrictModel):
                 if tag in used:
                     raise ValueError(f"AprilTag id {tag} of robot {name} is already used by {used[tag]}")
                 used[tag] = name
+        if "lander" in [r.name for r in self.robots]:
+            raise ValueError("'lander' is the name of the lander's network node; pick another robot name")
+        try:
+            self.comms.check_nodes(self.network_nodes())
+        except CommsError as exc:
+            raise ValueError(str(exc)) from None
         ratio = 1.0 / (self.physics.control_rate_hz * self.physics.timestep_s)
         if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
             raise ValueError(

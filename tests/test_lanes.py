@@ -1,5 +1,5 @@
-import simpy
 import pytest
+import simpy
 
 from sim.lanes import ComputeModel, Device, Lane, Priority
 from sim.scenario import ComputeConfig

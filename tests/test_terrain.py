@@ -195,7 +195,10 @@ def test_rock_diameters_follow_the_truncated_power_law():
                         rocks={"count": 400, "diameter_m": (0.1, 1.0), "power_law_exponent": 2.0})
     d = np.array([2 * r.radii[0] for r in generate_terrain(cfg, np.random.default_rng(2)).rocks])
     k, a, b = 2.0, 0.1, 1.0
-    cdf = lambda x: (a**-k - np.asarray(x) ** -k) / (a**-k - b**-k)
+
+    def cdf(x):
+        return (a**-k - np.asarray(x) ** -k) / (a**-k - b**-k)
+
     assert stats.kstest(d, cdf).pvalue > 0.01
 
 

@@ -229,6 +229,7 @@ class Robot(ABC):
         self._vadr = int(joint.dofadr[0])
         self._bind(model, data)
 
+    @abstractmethod
     def _bind(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
         """Subclass hook: resolve actuator and joint ids."""
 

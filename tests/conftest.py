@@ -1,0 +1,2 @@
+# `import sim` sets MUJOCO_GL=egl before any test module imports mujoco.
+import sim  # noqa: F401
