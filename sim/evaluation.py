@@ -1,0 +1,115 @@
+"""Trajectory evaluation against ground truth, with ``evo`` as the metrics library.
+
+Each robot is evaluated in its own start frame: the gravity-aligned frame at its
+first ground-truth pose (x, y, z and yaw of the body, roll and pitch dropped), which is
+how the robots' map frames are defined (thesis 4.1.2, design notes §3). ATE is
+reported unaligned in that frame, as the thesis reports its errors, and SE(3)-aligned
+(Umeyama, evo) for comparison; RPE per metre travelled; final error absolute and as a
+percentage of the distance driven; yaw error over time.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from evo.core import metrics, sync
+from evo.core.trajectory import PoseTrajectory3D
+from evo.core.units import Unit
+from scipy.spatial.transform import Rotation
+
+
+class EvaluationError(ValueError):
+    """Trajectories that cannot be compared (too short, no common time span)."""
+
+
+def pose_matrix(xyz_qwxyz: np.ndarray) -> np.ndarray:
+    """4x4 from ``[x, y, z, qw, qx, qy, qz]`` (the run log's ground-truth rows)."""
+    T = np.eye(4)
+    T[:3, 3] = xyz_qwxyz[:3]
+    qw, qx, qy, qz = xyz_qwxyz[3:7]
+    T[:3, :3] = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
+    return T
+
+
+def yaw_of(R: np.ndarray) -> float:
+    """Yaw of a rotation matrix (z-y-x Euler convention, z up)."""
+    return math.atan2(R[1, 0], R[0, 0])
+
+
+def gravity_aligned(T: np.ndarray) -> np.ndarray:
+    """The frame with T's position and yaw, roll and pitch dropped (thesis 4.1.2)."""
+    out = np.eye(4)
+    c, s = math.cos(yaw_of(T[:3, :3])), math.sin(yaw_of(T[:3, :3]))
+    out[:2, :2] = [[c, -s], [s, c]]
+    out[:3, 3] = T[:3, 3]
+    return out
+
+
+def in_start_frame(poses_world: np.ndarray) -> np.ndarray:
+    """Express world poses (N, 4, 4) in the gravity-aligned frame of the first one."""
+    start_inv = np.linalg.inv(gravity_aligned(poses_world[0]))
+    return start_inv[None] @ poses_world
+
+
+def path_length(poses: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()) if len(poses) > 1 else 0.0
+
+
+def _traj(times: np.ndarray, poses: np.ndarray) -> PoseTrajectory3D:
+    return PoseTrajectory3D(poses_se3=list(poses), timestamps=np.asarray(times, dtype=float))
+
+
+def _stats(metric) -> dict[str, float]:
+    s = metric.get_all_statistics()
+    return {k: float(s[k]) for k in ("rmse", "mean", "median", "max")}
+
+
+def trajectory_metrics(
+    t_est: np.ndarray, T_est: np.ndarray, t_gt: np.ndarray, T_gt: np.ndarray, max_time_diff: float = 0.011
+) -> dict[str, float | dict]:
+    """Compare an estimated trajectory with ground truth, both (N, 4, 4) in the same frame."""
+    ref, est = _traj(t_gt, T_gt), _traj(t_est, T_est)
+    try:
+        ref, est = sync.associate_trajectories(ref, est, max_diff=max_time_diff)
+    except sync.SyncException as exc:
+        raise EvaluationError(f"no common timestamps within {max_time_diff} s: {exc}") from None
+    if ref.num_poses < 2:
+        raise EvaluationError(f"only {ref.num_poses} associated poses")
+    distance = float(ref.path_length)
+    ate = metrics.APE(metrics.PoseRelation.translation_part)
+    ate.process_data((ref, est))
+    aligned = PoseTrajectory3D(poses_se3=list(est.poses_se3), timestamps=est.timestamps)
+    aligned.align(ref, correct_scale=False)
+    ate_aligned = metrics.APE(metrics.PoseRelation.translation_part)
+    ate_aligned.process_data((ref, aligned))
+    out: dict[str, float | dict] = {
+        "poses": int(ref.num_poses),
+        "distance_m": distance,
+        "ate_m": _stats(ate),
+        "ate_aligned_m": _stats(ate_aligned),
+    }
+    if distance > 1.5:
+        rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=1.0, delta_unit=Unit.meters, all_pairs=True)
+        try:
+            rpe.process_data((ref, est))
+            out["rpe_per_m"] = _stats(rpe)
+        except metrics.MetricsException:
+            pass  # too few pose pairs 1 m apart: RPE is left out, not faked
+    final = float(np.linalg.norm(ref.positions_xyz[-1] - est.positions_xyz[-1]))
+    yaw_err = np.array(
+        [_wrap(yaw_of(e[:3, :3]) - yaw_of(r[:3, :3])) for r, e in zip(ref.poses_se3, est.poses_se3)]
+    )
+    out["final_error_m"] = final
+    out["final_error_percent_of_distance"] = 100.0 * final / distance if distance > 0 else None
+    out["yaw_error_deg"] = {"final": math.degrees(yaw_err[-1]), "max_abs": math.degrees(np.abs(yaw_err).max())}
+    out["error_over_time"] = {
+        "t": ref.timestamps.tolist(),
+        "position_m": ate.error.tolist(),
+        "yaw_deg": np.degrees(yaw_err).tolist(),
+    }
+    return out
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
