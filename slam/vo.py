@@ -1,0 +1,567 @@
+"""Keyframe-based stereo visual odometry (thesis 3.2 and 4.1.1, after Hirschmüller et al. 2002).
+
+Pure module: numpy, scipy and OpenCV. Rectified stereo pairs (and optionally a dense
+depth image) in, delta poses with covariances out; no simulator, no ground truth.
+
+What it does per stereo pair
+----------------------------
+1. A keyframe holds corners of its left image (Shi-Tomasi, bucketed on a grid so they
+   cover the image) with 3D points from stereo: from the caller's dense depth
+   (``slam.stereo.StereoMatcher.depth``) or, without one, from sparse left-to-right
+   KLT matches triangulated with ``slam.stereo.triangulate``. Points whose depth error
+   (thesis eq. 5.2c) exceeds ``VoParams.max_point_error_m`` are dropped
+   (``slam.stereo.max_depth_for_error``), as the thesis drops far stereo points (5.1.1).
+2. The keyframe's corners are tracked into the current left image with pyramidal KLT
+   straight from the keyframe image (no frame-to-frame drift of the features),
+   initialised by projecting the 3D points with a constant-velocity prediction, and
+   checked forward-backward.
+3. PnP with RANSAC (``cv2.solvePnPRansac``) gives an inlier set; a weighted
+   Gauss-Newton refinement then minimises the Mahalanobis reprojection error, where
+   each point's 2x2 reprojection covariance holds the pixel noise of the current image
+   and the stereo uncertainty of its 3D point (eq. 5.2, full 3x3 covariance from the
+   triangulation Jacobian, whose diagonal is eq. 5.2a-c). Points are re-gated by
+   chi-square on that Mahalanobis error.
+4. The covariance of the delta is the inverse of the final Gauss-Newton information
+   matrix, ``(J^T W J)^-1``: it comes from the pixel noise, the point depths and the
+   inlier geometry of this very measurement (the "uncertainty estimates stemming from
+   propagated measurement noise" of 4.1.1), not from a constant.
+5. Keyframe policy: a history of ``n_keyframes`` (thesis 4.1.1: n = 5). The current
+   frame becomes a keyframe when the inliers fall below a share of the keyframe's
+   points or a minimum count, when the motion since the keyframe exceeds a translation
+   or rotation threshold, or when tracking against the keyframe failed. When the
+   active keyframe cannot be matched, the older keyframes of the history are tried
+   (newest first); a good match re-activates the old keyframe, which keeps the
+   estimate locally drift-free when the robot returns (Schmid et al. 2012 via 4.1.1).
+
+Failures are reported (``VoResult.ok = False`` with a reason), never papered over with
+a pose: the local reference filter then carries on with IMU and wheel odometry (4.1.1).
+
+Deviation from Hirschmüller et al. (2002): they match corners by correlation in both
+stereo pairs, reject outliers by the invariance of 3D point distances under rigid
+motion (with the distance error of thesis eq. 5.4) and solve 3D-3D. Here the current
+frame needs no stereo at all (3D-2D: KLT + PnP-RANSAC), which is cheaper per frame and
+weights each point by its own stereo error; the keyframe/history structure is the same.
+
+Conventions
+-----------
+Camera frames as OpenCV (x right, y down, z forward); ``T_kf_cur`` is the 4x4 pose of
+the current left camera in the keyframe's left-camera frame. Tangent vectors are
+ordered ``[rotation (rx, ry, rz), translation (tx, ty, tz)]`` with the right
+perturbation ``T = T_hat Exp(xi)``: to first order ``R = R_hat (I + [r]x)`` and
+``t = t_hat + R_hat t_xi``, i.e. both parts are expressed in the current camera frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import cv2
+import numpy as np
+
+from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, max_depth_for_error, triangulate
+
+
+class VoException(Exception):
+    """Bad input to the visual odometry (image shapes or types, parameters, frame order)."""
+
+
+# --------------------------------------------------------------------------- parameters and results
+
+
+class VoFailure(StrEnum):
+    """Why a frame gave no delta (``VoResult.reason``); members equal their strings."""
+
+    FIRST_FRAME = "first_frame"  # no keyframe yet: this frame became the first one
+    NO_TEXTURE = "no_texture"  # fewer than ``min_features`` corners in the left image
+    NO_DEPTH = "no_depth"  # corners, but too few with valid stereo depth for a keyframe
+    TOO_FEW_MATCHES = "too_few_matches"  # fewer than ``min_inliers`` keyframe features tracked
+    TOO_FEW_INLIERS = "too_few_inliers"  # PnP-RANSAC or the Mahalanobis gate left too few
+    DEGENERATE = "degenerate"  # singular information matrix or std above the limits
+
+
+@dataclass(frozen=True)
+class VoParams:
+    """Parameters of :class:`StereoVO`. Pixel values are for the image resolution used."""
+
+    # features (keyframes)
+    max_features: int = 300  # corners per keyframe, spread by the grid
+    grid_cols: int = 8  # bucketing grid: at most ceil(max_features / cells) corners per cell
+    grid_rows: int = 6
+    corner_quality: float = 0.01  # Shi-Tomasi quality level (relative to the best corner)
+    min_corner_distance_px: float = 6.0
+    border_px: int = 8  # no corners this close to the image border
+    min_features: int = 20  # fewer corners than this in an image: "no_texture"
+    # stereo points
+    max_point_error_m: float = 0.5  # far-point cut by the depth error of eq. 5.2c
+    min_depth_m: float = 0.3
+    max_depth_jump: float = 0.05  # relative depth range in the 3x3 neighbourhood (dense depth): edges dropped
+    stereo_max_row_error_px: float = 1.0  # sparse stereo: rows of a rectified match must agree
+    # tracking
+    klt_window_px: int = 15
+    klt_levels: int = 3
+    klt_fb_max_px: float = 0.5  # forward-backward consistency
+    # pose
+    ransac_threshold_px: float = 2.0
+    ransac_iterations: int = 200
+    ransac_confidence: float = 0.999
+    refine_iterations: int = 6  # weighted Gauss-Newton iterations (split around one re-gating)
+    inlier_chi2: float = 9.21  # Mahalanobis gate on the reprojection error, chi-square 2 dof, 99 %
+    min_inliers: int = 15  # fewer tracked features: "too_few_matches", fewer inliers: "too_few_inliers"
+    max_rotation_std_rad: float = 0.05  # a delta less certain than this is "degenerate"
+    max_translation_std_m: float = 0.25
+    seed: int = 0  # cv2.setRNGSeed before each RANSAC
+    # keyframe policy and history (thesis 4.1.1: n = 5)
+    n_keyframes: int = 5
+    keyframe_min_inlier_share: float = 0.5  # of the keyframe's 3D points
+    keyframe_min_inliers: int = 60
+    keyframe_max_translation_m: float = 0.5
+    keyframe_max_rotation_deg: float = 10.0
+    # noise (thesis 5.1.1: 0.5 px)
+    pixel_noise_px: float = DEFAULT_PIXEL_ERROR
+
+    def __post_init__(self):
+        positive = ("max_features", "grid_cols", "grid_rows", "min_features", "max_point_error_m", "klt_window_px",
+                    "klt_fb_max_px", "ransac_threshold_px", "ransac_iterations", "refine_iterations",
+                    "inlier_chi2", "min_inliers", "n_keyframes", "pixel_noise_px")
+        bad = [f"{k}={getattr(self, k)}" for k in positive if not getattr(self, k) > 0]
+        if bad:
+            raise VoException(f"VoParams must be positive: {', '.join(bad)}")
+        if self.min_inliers < 4:
+            raise VoException(f"min_inliers must be >= 4 (PnP with RANSAC), got {self.min_inliers}")
+        if not 0 <= self.keyframe_min_inlier_share <= 1:
+            raise VoException(f"keyframe_min_inlier_share must be in [0, 1], got {self.keyframe_min_inlier_share}")
+
+
+@dataclass(frozen=True)
+class VoResult:
+    """One processed stereo pair. ``T_kf_cur``/``cov`` are None unless ``ok``."""
+
+    t: float  # capture time of the current frame
+    frame_id: int  # id given by the caller for this frame
+    ok: bool
+    reason: VoFailure | None  # when not ok (a StrEnum: equal to "no_texture", "too_few_inliers", ...)
+    keyframe_id: int | None  # frame_id of the keyframe the delta refers to
+    T_kf_cur: np.ndarray | None  # 4x4 pose of the current left camera in the keyframe's left-camera frame
+    cov: np.ndarray | None  # 6x6, tangent [rx, ry, rz, tx, ty, tz], right perturbation T = T_hat Exp(xi)
+    inliers: int
+    keypoints: np.ndarray  # (n, 2) inlier pixel positions in the current left image
+    new_keyframe: bool  # this frame became the (active) keyframe
+    keyframe_history: tuple[int, ...]  # frame_ids of the kept keyframes, newest last
+    matches: int = 0  # tracked features before PnP (diagnostics)
+
+
+@dataclass
+class _Keyframe:
+    frame_id: int
+    t: float
+    image: np.ndarray  # grey left image, KLT's reference
+    uv: np.ndarray  # (n, 2) float32 corners in the left image
+    X: np.ndarray  # (n, 3) points in the keyframe's left-camera frame
+    cov_X: np.ndarray  # (n, 3, 3) their stereo covariance
+    T_odo: np.ndarray  # 4x4 pose in the VO's own chained frame (used for predictions only)
+
+
+@dataclass
+class _Measurement:
+    ok: bool
+    reason: VoFailure | None
+    T: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    inlier_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    matches: int = 0
+
+
+# --------------------------------------------------------------------------- geometry helpers
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices of vectors (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def so3_exp(r: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(r, dtype=float).reshape(3, 1))[0]
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(R, dtype=float))[0].ravel()
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """6D error ``xi`` with ``T_true = T_est Exp(xi)`` to first order, in the tangent order
+    of :class:`VoResult` ([rotation, translation], both in the estimated frame)."""
+    R, t = T_est[:3, :3], T_est[:3, 3]
+    return np.concatenate([so3_log(R.T @ T_true[:3, :3]), R.T @ (T_true[:3, 3] - t)])
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of ``T = (R, p)`` for tangent order [rotation, translation]:
+    ``T Exp(xi) T^-1 = Exp(Ad_T xi)`` with ``Ad_T = [[R, 0], [[p]x R, R]]``."""
+    R, p = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = Ad[3:, 3:] = R
+    Ad[3:, :3] = skew(p) @ R
+    return Ad
+
+
+def delta_in_body_frame(
+    T_kf_cur: np.ndarray, cov: np.ndarray, T_body_cam_kf: np.ndarray, T_body_cam_cur: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """A camera delta as the delta of the body frames it was mounted on (e.g. the filter's
+    IMU frame): ``T_b = X_kf T_kf_cur X_cur^-1`` with the camera extrinsics ``X`` (4x4
+    ``T_body_cam`` at the keyframe's and at the current capture; they differ on a
+    moving pan-tilt head). With ``T = T_hat Exp(xi)``, ``T_b = T_b_hat Exp(Ad_{X_cur} xi)``,
+    so the covariance becomes ``Ad cov Ad^T`` in the same right-perturbation convention."""
+    X_kf = np.asarray(T_body_cam_kf, dtype=float)
+    X_cur = X_kf if T_body_cam_cur is None else np.asarray(T_body_cam_cur, dtype=float)
+    Ad = adjoint(X_cur)
+    return X_kf @ T_kf_cur @ np.linalg.inv(X_cur), Ad @ cov @ Ad.T
+
+
+def stereo_point_covariance(X: np.ndarray, calib: StereoCalibration, pixel_error: float = DEFAULT_PIXEL_ERROR) -> np.ndarray:
+    """Full 3x3 covariances (n, 3, 3) of triangulated points (n, 3), first-order
+    propagation of independent pixel noise ``Δp`` on ``(u_l, v_l, u_r, v_r)`` through
+    ``slam.stereo.triangulate`` (Hirschmüller 2003). With ``1/d = z/(f b)``, the
+    Jacobian rows are ``z/(f b) [b - x, 0, x, 0]``, ``z/(f b) [-y, b/2, y, b/2]`` and
+    ``z/(f b) [-z, 0, z, 0]``; its diagonal is thesis eq. 5.2a-c, the off-diagonal
+    terms hold the strong x-z and y-z correlation along the viewing ray."""
+    X = np.asarray(X, dtype=float)
+    x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    b = calib.baseline_m
+    zero = np.zeros_like(z)
+    A = np.stack([np.stack([b - x, zero, x, zero], -1), np.stack([-y, np.full_like(z, b / 2), y, np.full_like(z, b / 2)], -1),
+                  np.stack([-z, zero, z, zero], -1)], axis=1)  # (n, 3, 4)
+    k = (pixel_error * z / calib.fb) ** 2
+    return k[:, None, None] * np.einsum("nik,njk->nij", A, A)
+
+
+def refine_pose(
+    T: np.ndarray,
+    X: np.ndarray,
+    cov_X: np.ndarray,
+    uv: np.ndarray,
+    K: np.ndarray,
+    pixel_noise_px: float,
+    iterations: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted Gauss-Newton on the reprojection error of keyframe points ``X`` (n, 3)
+    seen at ``uv`` (n, 2) in the current image, starting at ``T`` (current camera in the
+    keyframe frame).
+
+    Per point, ``C_i = Δp^2 I + J_p R^T Σ_X R J_p^T`` (pixel noise plus the projected
+    stereo covariance ``Σ_X``), ``W_i = C_i^-1``; the step solves
+    ``(Σ J_i^T W_i J_i) xi = Σ J_i^T W_i r_i`` with ``J_i = J_p [[X_c]x, -I]`` for the
+    right perturbation ``T = T_hat Exp(xi)``. Returns ``(T, H, r, W)``: the refined
+    pose, the information matrix ``H = J^T W J`` at it (its inverse is the covariance of
+    the delta), residuals (n, 2) and weights (n, 2, 2).
+    """
+    T = np.array(T, dtype=float)
+    f = K[0, 0]
+    c = K[:2, 2]
+    s2 = pixel_noise_px**2
+    n = len(X)
+    Jp = np.zeros((n, 2, 3))
+    J = np.zeros((n, 2, 6))
+    for it in range(iterations + 1):
+        R, t = T[:3, :3], T[:3, 3]
+        Xc = (X - t) @ R  # R^T (X - t)
+        zi = 1.0 / Xc[:, 2]
+        r = uv - (f * Xc[:, :2] * zi[:, None] + c)
+        Jp[:, 0, 0] = Jp[:, 1, 1] = f * zi
+        Jp[:, :, 2] = -f * Xc[:, :2] * (zi**2)[:, None]
+        JpRt = Jp @ R.T  # J_p R^T
+        C = JpRt @ cov_X @ JpRt.transpose(0, 2, 1)
+        C[:, 0, 0] += s2
+        C[:, 1, 1] += s2
+        det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+        W = np.empty_like(C)
+        W[:, 0, 0], W[:, 1, 1] = C[:, 1, 1] / det, C[:, 0, 0] / det
+        W[:, 0, 1] = W[:, 1, 0] = -0.5 * (C[:, 0, 1] + C[:, 1, 0]) / det
+        # J = J_p [[X_c]x, -I]: columns of [X_c]x written out
+        x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+        for k in range(2):
+            a, b_, cz = Jp[:, k, 0], Jp[:, k, 1], Jp[:, k, 2]
+            J[:, k, 0] = b_ * z - cz * y
+            J[:, k, 1] = cz * x - a * z
+            J[:, k, 2] = a * y - b_ * x
+        J[:, :, 3:] = -Jp
+        WJ = W @ J  # (n, 2, 6)
+        H = J.reshape(-1, 6).T @ WJ.reshape(-1, 6)
+        if it == iterations:
+            return T, H, r, W
+        g = WJ.reshape(-1, 6).T @ r.reshape(-1)
+        try:
+            xi = np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            return T, H, r, W
+        T[:3, :3] = R @ so3_exp(xi[:3])
+        T[:3, 3] = t + R @ xi[3:]
+        if np.linalg.norm(xi) < 1e-10:
+            iterations = it + 1  # converged: one more pass for H at the solution
+    raise AssertionError("unreachable")
+
+
+# --------------------------------------------------------------------------- the odometry
+
+
+class StereoVO:
+    """Keyframe stereo visual odometry for one rectified rig (see the module docstring).
+
+    Call :meth:`process` once per stereo pair, in capture order. The caller (the local
+    reference filter's owner) clones the filter state at each capture and keeps the
+    clones of the frames listed in ``VoResult.keyframe_history``; each ``ok`` result is
+    a delta pose between the clone of ``keyframe_id`` and the clone of ``frame_id``.
+    """
+
+    def __init__(self, calib: StereoCalibration, params: VoParams = VoParams()):
+        self.calib = calib
+        self.params = params
+        self.K = calib.K
+        self.history: list[_Keyframe] = []  # oldest first
+        self.active: _Keyframe | None = None
+        self._T_odo_prev = np.eye(4)  # pose of the last frame in the VO's chained frame
+        self._motion = np.eye(4)  # last frame-to-frame motion (constant-velocity prediction)
+        self._prev_id: int | None = None  # the last frame, and whether its pose was measured
+        self._prev_measured = False
+        self._win = (params.klt_window_px, params.klt_window_px)
+        self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03)
+        self._max_depth = min(max_depth_for_error(calib, params.max_point_error_m, params.pixel_noise_px),
+                              calib.fb / 0.5)  # at least half a pixel of disparity
+
+    # ------------------------------------------------------------------ public
+
+    def process(self, frame_id: int, t: float, left: np.ndarray, right: np.ndarray, depth: np.ndarray | None = None) -> VoResult:
+        """Estimate the pose of this pair's left camera relative to a keyframe.
+
+        ``left``/``right``: rectified uint8 images (grey, or RGB converted to grey);
+        ``depth``: optional z-depth of the left image (NaN invalid), e.g. from
+        ``StereoMatcher.depth``; without it, corners are matched into ``right``.
+        Frame ids must be unique. Outcomes:
+
+        - ``ok``: ``T_kf_cur`` and ``cov`` relative to keyframe ``keyframe_id`` (always in
+          ``keyframe_history``); ``new_keyframe`` if the policy made this frame the next
+          keyframe (the delta still refers to the old one);
+        - not ``ok``: ``reason`` says why; ``new_keyframe`` is True when tracking restarts
+          from this frame (first frame, or lost track on a textured image): its filter
+          clone becomes a keyframe clone with no delta linking it to the previous ones.
+        """
+        if frame_id == self._prev_id or any(k.frame_id == frame_id for k in self.history):
+            raise VoException(f"frame_id {frame_id} was already processed; ids must be unique")
+        grey_l = self._grey(left, "left")
+        if depth is not None:
+            depth = np.asarray(depth)
+            if depth.shape != grey_l.shape:
+                raise VoException(f"depth: expected shape {grey_l.shape}, got {depth.shape}")
+
+        # measure against the active keyframe, then (if that fails) the rest of the history
+        meas, ref = None, None
+        if self.active is not None:
+            meas, ref = self._measure(self.active, grey_l), self.active
+            if not meas.ok:
+                for kf in sorted((k for k in self.history if k is not self.active), key=lambda k: -k.frame_id):
+                    m = self._measure(kf, grey_l)
+                    if m.ok:
+                        meas, ref = m, kf
+                        break
+
+        new_kf = False
+        reason = meas.reason if meas is not None else VoFailure.FIRST_FRAME
+        if meas is not None and meas.ok:
+            T_odo_cur = ref.T_odo @ meas.T
+            if not self._keeps(ref, meas):
+                new_kf = self._make_keyframe(frame_id, t, grey_l, right, depth, T_odo_cur, keep=ref) is None
+            elif ref is not self.active:
+                self.active = ref  # a revisit: back to the older keyframe
+        else:
+            T_odo_cur = self._T_odo_prev @ self._motion  # unknown: the prediction stands in
+            failure = self._make_keyframe(frame_id, t, grey_l, right, depth, T_odo_cur)
+            new_kf = failure is None
+            if failure == VoFailure.NO_TEXTURE or (meas is None and failure is not None):
+                reason = failure
+        measured = meas is not None and meas.ok
+        # the velocity is known when this and the previous pose were measured (or this one against the previous)
+        if measured and (self._prev_measured or ref.frame_id == self._prev_id):
+            self._motion = np.linalg.inv(self._T_odo_prev) @ T_odo_cur
+        else:
+            self._motion = np.eye(4)
+        self._T_odo_prev, self._prev_id, self._prev_measured = T_odo_cur, frame_id, measured
+
+        history = tuple(k.frame_id for k in self.history)
+        if meas is None or not meas.ok:
+            return VoResult(t, frame_id, False, reason, None, None, None, 0, np.zeros((0, 2)), new_kf, history,
+                            0 if meas is None else meas.matches)
+        return VoResult(t, frame_id, True, None, ref.frame_id, meas.T, meas.cov, len(meas.inlier_uv), meas.inlier_uv,
+                        new_kf, history, meas.matches)
+
+    # ------------------------------------------------------------------ keyframes
+
+    def _grey(self, image: np.ndarray, which: str) -> np.ndarray:
+        image = np.asarray(image)
+        if image.ndim == 3 and image.shape[2] == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        if image.shape != (self.calib.height, self.calib.width) or image.dtype != np.uint8:
+            raise VoException(
+                f"{which} image: expected uint8 ({self.calib.height}, {self.calib.width}) grey or (..., 3) RGB, "
+                f"got {image.dtype} {image.shape}"
+            )
+        return image
+
+    def _keeps(self, kf: _Keyframe, m: _Measurement) -> bool:
+        """Keyframe policy: may ``kf`` stay the reference after measurement ``m``?"""
+        p = self.params
+        n = len(m.inlier_uv)
+        angle = np.linalg.norm(so3_log(m.T[:3, :3]))
+        return (n >= p.keyframe_min_inliers and n >= p.keyframe_min_inlier_share * len(kf.X)
+                and np.linalg.norm(m.T[:3, 3]) <= p.keyframe_max_translation_m
+                and angle <= math.radians(p.keyframe_max_rotation_deg))
+
+    def detect(self, grey: np.ndarray) -> np.ndarray:
+        """Shi-Tomasi corners (k, 2) float32, at most ``ceil(max_features / cells)`` per
+        grid cell, strongest first within a cell (vectorised bucketing)."""
+        p = self.params
+        mask = np.zeros_like(grey)
+        b = p.border_px
+        mask[b:-b, b:-b] = 255
+        cells = p.grid_cols * p.grid_rows
+        per_cell = math.ceil(p.max_features / cells)
+        pts = cv2.goodFeaturesToTrack(grey, 4 * p.max_features, p.corner_quality, p.min_corner_distance_px, mask=mask,
+                                      blockSize=3)
+        if pts is None:
+            return np.zeros((0, 2), np.float32)
+        pts = pts.reshape(-1, 2)  # strongest first
+        h, w = grey.shape
+        cell = (np.minimum((pts[:, 1] * p.grid_rows / h).astype(int), p.grid_rows - 1) * p.grid_cols
+                + np.minimum((pts[:, 0] * p.grid_cols / w).astype(int), p.grid_cols - 1))
+        order = np.argsort(cell, kind="stable")
+        sorted_cells = cell[order]
+        first = np.searchsorted(sorted_cells, sorted_cells, side="left")
+        rank = np.empty(len(pts), int)
+        rank[order] = np.arange(len(pts)) - first
+        keep = np.flatnonzero(rank < per_cell)[: p.max_features]
+        return np.ascontiguousarray(pts[keep], dtype=np.float32)
+
+    def _points_from_depth(self, uv: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """3D points at integer corners from a dense z-depth; NaN, inf and depth edges dropped."""
+        p = self.params
+        h, w = depth.shape
+        u = np.clip(np.rint(uv[:, 0]).astype(int), 1, w - 2)
+        v = np.clip(np.rint(uv[:, 1]).astype(int), 1, h - 2)
+        du, dv = np.meshgrid([-1, 0, 1], [-1, 0, 1])
+        patch = depth[v[:, None] + dv.ravel(), u[:, None] + du.ravel()].astype(float)  # (n, 9)
+        with np.errstate(invalid="ignore"):
+            z = patch[:, 4]
+            ok = np.all(np.isfinite(patch), axis=1)
+            ok &= (np.ptp(np.where(ok[:, None], patch, 0), axis=1) <= p.max_depth_jump * z)
+        c = self.calib
+        X = np.stack([(uv[:, 0] - c.cx) * z / c.focal_px, (uv[:, 1] - c.cy) * z / c.focal_px, z], axis=1)
+        return X, ok
+
+    def _points_from_stereo(self, uv: np.ndarray, grey_l: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """3D points by KLT along the rectified rows of the right image, forward-backward
+        checked, triangulated with :func:`slam.stereo.triangulate`."""
+        p = self.params
+        grey_r = self._grey(right, "right")
+        guess = uv.copy()
+        guess[:, 0] = np.maximum(guess[:, 0] - self.calib.fb / 3.0, 0)  # start at the disparity of 3 m
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        uv_r, st, _ = cv2.calcOpticalFlowPyrLK(grey_l, grey_r, uv, guess, winSize=self._win, maxLevel=p.klt_levels,
+                                               criteria=self._criteria, flags=flags)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey_r, grey_l, uv_r, uv.copy(), winSize=self._win, maxLevel=p.klt_levels,
+                                                criteria=self._criteria, flags=flags)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - uv, axis=1) < p.klt_fb_max_px)
+        ok &= np.abs(uv_r[:, 1] - uv[:, 1]) < p.stereo_max_row_error_px
+        ok &= uv[:, 0] - uv_r[:, 0] > 0
+        # y from the left row alone: the right row is a noisy copy on a rectified pair
+        X = triangulate(uv[:, 0], uv[:, 1], uv_r[:, 0], uv[:, 1], self.calib)
+        return X, ok
+
+    def _make_keyframe(self, frame_id, t, grey, right, depth, T_odo, keep: _Keyframe | None = None) -> VoFailure | None:
+        """Make the current frame the active keyframe; returns a failure reason or None.
+        A full history drops its oldest keyframe other than ``keep`` (the reference of
+        this frame's delta, whose filter clone the caller still needs)."""
+        p = self.params
+        uv = self.detect(grey)
+        if len(uv) < p.min_features:
+            return VoFailure.NO_TEXTURE
+        X, ok = self._points_from_depth(uv, depth) if depth is not None else self._points_from_stereo(uv, grey, right)
+        with np.errstate(invalid="ignore"):
+            ok &= (X[:, 2] >= p.min_depth_m) & (X[:, 2] <= self._max_depth)
+        if ok.sum() < p.min_features:
+            return VoFailure.NO_DEPTH
+        X = X[ok]
+        kf = _Keyframe(frame_id, t, grey, uv[ok], X, stereo_point_covariance(X, self.calib, p.pixel_noise_px), T_odo.copy())
+        self.history.append(kf)
+        if len(self.history) > p.n_keyframes:
+            self.history.remove(next(k for k in self.history if k is not keep))
+        self.active = kf
+        return None
+
+    # ------------------------------------------------------------------ measurement
+
+    def _measure(self, kf: _Keyframe, grey: np.ndarray) -> _Measurement:
+        """Track ``kf`` into the current image and estimate ``T_kf_cur`` with its covariance."""
+        p = self.params
+        c = self.calib
+        # prediction: constant velocity in the VO's chained frame
+        T_pred = np.linalg.inv(kf.T_odo) @ self._T_odo_prev @ self._motion
+        R, tp = T_pred[:3, :3], T_pred[:3, 3]
+        Xc = (kf.X - tp) @ R
+        with np.errstate(divide="ignore", invalid="ignore"):
+            guess = (self.K[:2, :2] @ (Xc[:, :2] / Xc[:, 2:3]).T).T + self.K[:2, 2]
+        m = p.border_px / 2
+        vis = (Xc[:, 2] > p.min_depth_m) & (guess[:, 0] >= m) & (guess[:, 0] < c.width - m)
+        vis &= (guess[:, 1] >= m) & (guess[:, 1] < c.height - m)
+        idx = np.flatnonzero(vis)
+        if len(idx) < p.min_inliers:
+            return _Measurement(False, VoFailure.TOO_FEW_MATCHES, matches=len(idx))
+        uv0 = np.ascontiguousarray(kf.uv[idx])
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        uv1, st, _ = cv2.calcOpticalFlowPyrLK(kf.image, grey, uv0, np.ascontiguousarray(guess[idx], np.float32),
+                                              winSize=self._win, maxLevel=p.klt_levels, criteria=self._criteria, flags=flags)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, kf.image, uv1, uv0.copy(), winSize=self._win, maxLevel=p.klt_levels,
+                                                criteria=self._criteria, flags=flags)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - uv0, axis=1) < p.klt_fb_max_px)
+        ok &= (uv1[:, 0] >= 0) & (uv1[:, 0] <= c.width - 1) & (uv1[:, 1] >= 0) & (uv1[:, 1] <= c.height - 1)
+        idx, uv1 = idx[ok], uv1[ok].astype(float)
+        n = len(idx)
+        if n < p.min_inliers:
+            return _Measurement(False, VoFailure.TOO_FEW_MATCHES, matches=n)
+        X, cov_X = kf.X[idx], kf.cov_X[idx]
+
+        cv2.setRNGSeed(p.seed)
+        found, rvec, tvec, inl = cv2.solvePnPRansac(
+            X, uv1, self.K, None, iterationsCount=p.ransac_iterations, reprojectionError=p.ransac_threshold_px,
+            confidence=p.ransac_confidence, flags=cv2.SOLVEPNP_AP3P)
+        if not found or inl is None or len(inl) < p.min_inliers:
+            return _Measurement(False, VoFailure.TOO_FEW_INLIERS, matches=n)
+        R_ck = so3_exp(rvec.ravel())  # keyframe -> camera
+        T = np.eye(4)
+        T[:3, :3] = R_ck.T
+        T[:3, 3] = -R_ck.T @ tvec.ravel()
+
+        # weighted refinement on the RANSAC inliers, re-gating by Mahalanobis distance, refinement again
+        sel = inl.ravel()
+        half = max(1, p.refine_iterations // 2)
+        T, H, _, _ = refine_pose(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, half)
+        _, _, r, W = refine_pose(T, X, cov_X, uv1, self.K, p.pixel_noise_px, 0)
+        with np.errstate(invalid="ignore"):
+            sel = np.flatnonzero(np.einsum("ni,nij,nj->n", r, W, r) < p.inlier_chi2)
+        if len(sel) < p.min_inliers:
+            return _Measurement(False, VoFailure.TOO_FEW_INLIERS, matches=n)
+        T, H, _, _ = refine_pose(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, p.refine_iterations - half)
+        try:
+            cov = np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            return _Measurement(False, VoFailure.DEGENERATE, matches=n)
+        std = np.sqrt(np.diag(cov))
+        if (not np.all(np.isfinite(cov)) or np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0)
+                or std[:3].max() > p.max_rotation_std_rad or std[3:].max() > p.max_translation_std_m):
+            return _Measurement(False, VoFailure.DEGENERATE, matches=n)
+        return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n)
