@@ -1,0 +1,802 @@
+"""Local reference filter (thesis 4.1): an error-state EKF for vision-aided inertial
+navigation with stochastic cloning, delay compensation and frame-of-reference switching.
+
+Pure module: numpy and scipy only. IMU samples, clone triggers, visual-odometry delta
+poses and wheel velocities in; pose, velocity, biases and covariances out.
+
+State (thesis eq. 4.1 and 4.2)
+------------------------------
+Direct state ``x = (p, v, q, b_a, b_w)``: position and velocity of the body (IMU) origin
+in the current local frame, attitude ``R`` (body -> local, kept as a rotation matrix
+instead of the quaternion ``q``), accelerometer and gyro biases. Error state, 15 entries::
+
+    delta = [dp (0:3), dv (3:6), dtheta (6:9), db_a (9:12), db_w (12:15)]
+
+``p_true = p + dp``, ``v_true = v + dv``, ``b_true = b + db`` and ``R_true = Exp(dtheta) R``:
+``dtheta`` (eq. 4.2's ``delta sigma``) is a *left* perturbation, expressed in the local
+frame, so ``dtheta_z`` is the heading error about gravity and ``dtheta_x, dtheta_y`` are
+the tilt errors. Each clone (state augmentation, eq. 4.3) adds six entries
+``[dtheta_c (3), dp_c (3)]`` in the same convention, in the order of :attr:`clone_ids`.
+
+Conventions: local frame gravity-aligned with z up, ``g = [0, 0, -gravity]``; body x
+forward, y left, z up, IMU at the body origin; accelerometer ``f = R^T (a - g) + b_a + n``,
+gyro ``w = omega + b_w + n``.
+
+Covariance orderings returned
+-----------------------------
+- :meth:`covariance`: 15x15 core block in the order above (``dtheta`` left, local frame).
+- :meth:`full_covariance`: core then six per clone ``[dtheta_c, dp_c]``, clones in
+  :attr:`clone_ids` order.
+- :meth:`pose_covariance`: 6x6 ``[rotation, translation]`` of :meth:`pose`, *right*
+  perturbation in the body frame, ``T_true = T Exp([omega, rho])`` to first order
+  (GTSAM's ``Pose3`` convention): ``omega = R^T dtheta``, ``rho = R^T dp``.
+- :meth:`roll_pitch_covariance`: 2x2 of the ZYX Euler roll and pitch.
+- :meth:`observable_estimate`: ``[roll, pitch, v_body (3)]`` and its 5x5 covariance.
+- :meth:`frame_switch`: 4x4 covariance of ``[x, y, z, yaw]`` of the new frame in the old
+  one (additive position, ZYX Euler yaw).
+- Inputs: :meth:`update_relative_pose` takes ``[rotation, translation]``, right
+  perturbation (``T_meas = T_true Exp(n)``); :meth:`update_body_velocity` the
+  covariance of the body-frame velocity components given.
+
+Propagation (strapdown, thesis 4.1.1)
+-------------------------------------
+Each :meth:`propagate` call integrates from the previous sample to this one with rates
+and specific forces interpolated linearly between the two samples: the attitude with
+the mean rate over the interval, velocity and position with Simpson's rule on the
+local-frame acceleration at the start, middle and end (exact for constant body rates
+and specific forces linear in time). The covariance uses the continuous-time error model
+``F`` (Schmid et al. 2014a) held at the interval midpoint, ``Phi = exp(F dt) = I + F dt +
+F^2 dt^2 / 2 + F^3 dt^3 / 6`` (exact: ``F^4 = 0`` in the chain ``b_w -> theta -> v -> p``),
+with white noise and bias random walks of the given continuous densities.
+
+Delay compensation (thesis 4.1.1)
+---------------------------------
+A clone records the pose at an image trigger; a visual-odometry delta between two
+clones arrives later (about 250 ms). The update is exact, not merely linearised: every
+clone also stores a snapshot of the whole filter (mean and covariance) at its trigger,
+and the filter keeps a log of every input since the oldest snapshot within
+``FilterParams.replay_horizon_s``. A delta that arrives late is inserted in the log right
+after the later of its two clones; the filter rolls back to that clone's snapshot,
+applies the delta there and re-applies the logged IMU samples, clones, drops and updates
+up to the present. The result is the one the filter would have had with the delta in
+time (same operations in the same order). Cost: re-propagating the delay (about 50
+samples at 200 Hz), which is cheap next to the image pipeline; plain stochastic cloning
+differs from the in-time result by linearisation (corrections applied through
+cross-covariances rather than re-integrated). Without a snapshot (older than the
+horizon, or captured before the latest frame switch, whose output has already been
+used and cannot be replayed) the delta is applied against the clones at the present
+time: stochastic cloning, the thesis's mechanism, correct to first order.
+
+Frame switch (thesis 4.1.2)
+---------------------------
+The new local frame is the current position and ZYX yaw (roll and pitch excluded, so it
+stays gravity-aligned). All states are expressed in it: ``x' = Rz(yaw)^T (x - p)`` for
+positions and clone positions, ``Rz(yaw)^T`` for velocity and attitudes; biases are kept.
+The covariance is mapped with the Jacobian of that transform with respect to the old
+errors, *including* the error of the frame itself (the true frame is at the true
+position and yaw), so position and yaw uncertainty are exactly zero afterwards while
+roll, pitch, velocity, biases and clones keep theirs (Schmid et al. 2014b).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+from scipy.stats import chi2
+
+from slam.lie import euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_z, rot_zyx, se3, skew, so3_exp, so3_exp_batch, so3_log
+
+CORE = 15  # [dp, dv, dtheta, db_a, db_w]
+CLONE = 6  # [dtheta_c, dp_c]
+_P, _V, _TH, _BA, _BW = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+_TIME_EPS = 1e-6  # s: a clone time must match the last propagated time this closely
+_ORTHONORMALIZE_EVERY = 1000  # IMU samples between re-orthonormalisations of R
+
+
+class FilterException(Exception):
+    """Bad input to the local reference filter (shapes, times, unknown clones, parameters)."""
+
+
+@cache
+def _chi2_gate(probability: float, dof: int) -> float:
+    return float(chi2.ppf(probability, dof))
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """Noise model and initial uncertainty of :class:`LocalReferenceFilter` (SI units).
+
+    The four densities are continuous-time: white noise ``*_noise_density`` (gyro
+    rad/s/sqrt(Hz), accelerometer m/s^2/sqrt(Hz); one sample at rate ``r`` has std
+    ``density * sqrt(r)``) and bias random walks ``*_bias_random_walk`` (rad/s/sqrt(s),
+    m/s^2/sqrt(s)). ``initial_position_std`` and ``initial_yaw_std`` default to 0: the
+    first local frame is the start pose. ``gate_probability`` sets the chi-square gate on
+    visual-odometry deltas (6 dof); ``velocity_gate_probability`` an optional one on body
+    velocities (``None``: none). ``replay_horizon_s`` is how far back delayed deltas are
+    applied exactly (0 disables the replay: stochastic cloning only).
+    """
+
+    gyro_noise_density: float
+    accel_noise_density: float
+    gyro_bias_random_walk: float
+    accel_bias_random_walk: float
+    initial_position_std: float = 0.0
+    initial_yaw_std: float = 0.0
+    initial_roll_pitch_std: float = math.radians(1.0)
+    initial_velocity_std: float = 0.01
+    initial_accel_bias_std: float = 0.05
+    initial_gyro_bias_std: float = math.radians(0.5)
+    gravity: float = 9.81
+    max_clones: int = 24  # e.g. two stereo rigs x (5 keyframes + pending captures), with margin
+    gate_probability: float = 0.999
+    velocity_gate_probability: float | None = None
+    replay_horizon_s: float = 2.0
+
+    def __post_init__(self):
+        for name in ("gyro_noise_density", "accel_noise_density", "gyro_bias_random_walk", "accel_bias_random_walk"):
+            if not getattr(self, name) > 0.0:
+                raise FilterException(f"FilterParams.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in (
+            "initial_position_std",
+            "initial_yaw_std",
+            "initial_roll_pitch_std",
+            "initial_velocity_std",
+            "initial_accel_bias_std",
+            "initial_gyro_bias_std",
+            "replay_horizon_s",
+        ):
+            if not getattr(self, name) >= 0.0:
+                raise FilterException(f"FilterParams.{name} must be >= 0, got {getattr(self, name)!r}")
+        if not self.gravity > 0.0:
+            raise FilterException(f"FilterParams.gravity must be > 0 (magnitude, m/s^2), got {self.gravity!r}")
+        if not (isinstance(self.max_clones, int) and self.max_clones >= 2):
+            raise FilterException(f"FilterParams.max_clones must be an int >= 2, got {self.max_clones!r}")
+        for name in ("gate_probability", "velocity_gate_probability"):
+            p = getattr(self, name)
+            if p is not None and not 0.0 < p < 1.0:
+                raise FilterException(f"FilterParams.{name} must be in (0, 1) or None, got {p!r}")
+        if self.gate_probability is None:
+            raise FilterException("FilterParams.gate_probability must be in (0, 1), got None")
+
+
+def _vector(x, n: int, name: str) -> np.ndarray:
+    a = np.array(x, dtype=float)
+    if a.shape != (n,):
+        raise FilterException(f"{name} must have shape ({n},), got {a.shape}")
+    return a
+
+
+def _covariance(c, n: int, name: str) -> np.ndarray:
+    a = np.array(c, dtype=float)
+    if a.shape != (n, n):
+        raise FilterException(f"{name} must have shape ({n}, {n}), got {a.shape}")
+    if not np.all(np.isfinite(a)) or np.abs(a - a.T).max() > 1e-9 * np.abs(a).max():
+        raise FilterException(f"{name} must be a finite symmetric matrix")
+    try:
+        np.linalg.cholesky(a)
+    except np.linalg.LinAlgError:
+        raise FilterException(f"{name} must be positive definite, eigenvalues {np.linalg.eigvalsh(a)}") from None
+    return 0.5 * (a + a.T)
+
+
+class LocalReferenceFilter:
+    """Error-state EKF of thesis 4.1 (eq. 4.1-4.3) on one robot; see the module docstring.
+
+    Call order on the robot: :meth:`propagate` for every IMU sample; :meth:`clone` at an
+    image trigger right after the IMU sample of that time; :meth:`update_relative_pose`
+    when the visual odometry's delta between two clones arrives (delays are compensated);
+    :meth:`drop_clone` when a clone is no longer referenced; :meth:`update_body_velocity`
+    for wheel odometry; :meth:`frame_switch` when the mapping starts a new submap.
+    """
+
+    def __init__(
+        self,
+        params: FilterParams,
+        t0: float,
+        accel_at_rest: np.ndarray | None = None,
+        gyro_at_rest: np.ndarray | None = None,
+    ):
+        """Start at time ``t0`` at rest in the first local frame (the start pose's x, y, z
+        and yaw: position 0, yaw 0). Roll and pitch come from the mean specific force of a
+        resting accelerometer ``accel_at_rest`` (it measures ``-R^T g``) if given, else 0;
+        ``gyro_at_rest`` (mean resting gyro) sets the initial gyro bias estimate if given
+        (``initial_gyro_bias_std`` should then describe its error)."""
+        self.params = params
+        self._g = np.array([0.0, 0.0, -params.gravity])
+        roll = pitch = 0.0
+        if accel_at_rest is not None:
+            f = _vector(accel_at_rest, 3, "accel_at_rest")
+            if not 0.5 * params.gravity < np.linalg.norm(f) < 1.5 * params.gravity:
+                raise FilterException(f"accel_at_rest {f} is not a resting specific force (|f| should be near {params.gravity})")
+            roll = math.atan2(f[1], f[2])
+            pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
+        self._t = float(t0)
+        self._p = np.zeros(3)
+        self._v = np.zeros(3)
+        self._R = rot_zyx(roll, pitch, 0.0)
+        self._ba = np.zeros(3)
+        self._bw = np.zeros(3) if gyro_at_rest is None else _vector(gyro_at_rest, 3, "gyro_at_rest")
+        self._f_prev: np.ndarray | None = None
+        self._w_prev: np.ndarray | None = None
+        self._dt_last = 0.0
+        self._steps = 0
+        self._frame_index = 0
+        # clones: ids and capture times; attitudes and positions in fixed buffers
+        self._clone_ids: list[int] = []
+        self._clone_t: list[float] = []
+        self._cR = np.zeros((params.max_clones, 3, 3))  # first len(_clone_ids) rows in use
+        self._cp = np.zeros((params.max_clones, 3))
+
+        dim = CORE + CLONE * params.max_clones
+        self._Pbuf = np.zeros((dim, dim))
+        P0 = self._Pbuf[:CORE, :CORE]
+        P0[_P, _P] = np.eye(3) * params.initial_position_std**2
+        P0[_V, _V] = np.eye(3) * params.initial_velocity_std**2
+        M = euler_zyx_jacobian(roll, pitch, 0.0)
+        rp2, y2 = params.initial_roll_pitch_std**2, params.initial_yaw_std**2
+        P0[_TH, _TH] = M @ np.diag([rp2, rp2, y2]) @ M.T
+        P0[_BA, _BA] = np.eye(3) * params.initial_accel_bias_std**2
+        P0[_BW, _BW] = np.eye(3) * params.initial_gyro_bias_std**2
+
+        # discrete process noise Qd = dt Q1 + dt^2 Q2 + dt^3 Q3 (isotropic densities, so
+        # independent of the attitude)
+        sa2, sg2 = params.accel_noise_density**2, params.gyro_noise_density**2
+        I3 = np.eye(3)
+        self._Q1 = np.zeros((CORE, CORE))
+        self._Q1[_V, _V] = sa2 * I3
+        self._Q1[_TH, _TH] = sg2 * I3
+        self._Q1[_BA, _BA] = params.accel_bias_random_walk**2 * I3
+        self._Q1[_BW, _BW] = params.gyro_bias_random_walk**2 * I3
+        self._Q2 = np.zeros((CORE, CORE))
+        self._Q2[_P, _V] = self._Q2[_V, _P] = 0.5 * sa2 * I3
+        self._Q3 = np.zeros((CORE, CORE))
+        self._Q3[_P, _P] = sa2 / 3.0 * I3
+        self._Phi = np.eye(CORE)
+        self._W = np.zeros((3, 9))
+        self._phi_p_scale = np.repeat([-0.5, -0.5, 1.0 / 6.0], 3)  # times dt: Phi = I + F dt + F^2 dt^2/2 + F^3 dt^3/6
+        self._phi_v_scale = np.repeat([-1.0, -1.0, 0.5], 3)
+        self._q_key = math.nan
+        self._Qd = np.zeros((CORE, CORE))
+
+        # delay compensation: input log since the oldest clone snapshot in the horizon
+        self._log: list[list] = []
+        self._clone_event: dict[int, list] = {}
+
+    # ------------------------------------------------------------------ read-outs
+
+    @property
+    def t(self) -> float:
+        """Time of the latest propagated IMU sample (or ``t0``)."""
+        return self._t
+
+    @property
+    def frame_index(self) -> int:
+        """Number of frame switches so far (0: the start frame)."""
+        return self._frame_index
+
+    @property
+    def accel_bias(self) -> np.ndarray:
+        return self._ba.copy()
+
+    @property
+    def gyro_bias(self) -> np.ndarray:
+        return self._bw.copy()
+
+    @property
+    def clone_ids(self) -> list[int]:
+        """Held clones, in the order of their blocks in :meth:`full_covariance`."""
+        return list(self._clone_ids)
+
+    def pose(self) -> np.ndarray:
+        """4x4 ``T_local_body``."""
+        return se3(self._R, self._p)
+
+    def velocity(self) -> np.ndarray:
+        """Velocity of the body origin in the local frame."""
+        return self._v.copy()
+
+    def roll_pitch(self) -> np.ndarray:
+        """ZYX Euler ``[roll, pitch]`` of the body in the (gravity-aligned) local frame."""
+        roll, pitch, _ = euler_zyx(self._R)
+        return np.array([roll, pitch])
+
+    def covariance(self) -> np.ndarray:
+        """15x15 core covariance ``[dp, dv, dtheta, db_a, db_w]`` (``dtheta`` left, local frame)."""
+        return self._Pbuf[:CORE, :CORE].copy()
+
+    def full_covariance(self) -> np.ndarray:
+        """Core and clone covariance, ``15 + 6 n`` square (clones ``[dtheta_c, dp_c]`` in :attr:`clone_ids` order)."""
+        d = self._dim
+        return self._Pbuf[:d, :d].copy()
+
+    def pose_covariance(self) -> np.ndarray:
+        """6x6 covariance of :meth:`pose`, ``[rotation, translation]``, right perturbation (body frame)."""
+        J = np.zeros((6, CORE))
+        J[0:3, _TH] = self._R.T
+        J[3:6, _P] = self._R.T
+        return J @ self._Pbuf[:CORE, :CORE] @ J.T
+
+    def roll_pitch_covariance(self) -> np.ndarray:
+        """2x2 covariance of :meth:`roll_pitch` (ZYX Euler)."""
+        Mi = euler_zyx_jacobian_inv(*euler_zyx(self._R))[:2]
+        return Mi @ self._Pbuf[_TH, _TH] @ Mi.T
+
+    def observable_estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """The modes a VINS observes (thesis 4.1.2): ``[roll, pitch, v_body_x, v_body_y,
+        v_body_z]`` with ``v_body = R^T v``, and their 5x5 covariance (for NEES)."""
+        roll, pitch, yaw = euler_zyx(self._R)
+        J = np.zeros((5, CORE))
+        J[0:2, _TH] = euler_zyx_jacobian_inv(roll, pitch, yaw)[:2]
+        J[2:5, _V] = self._R.T
+        J[2:5, _TH] = self._R.T @ skew(self._v)
+        x = np.concatenate([[roll, pitch], self._R.T @ self._v])
+        return x, J @ self._Pbuf[:CORE, :CORE] @ J.T
+
+    def clone_pose(self, clone_id: int) -> np.ndarray:
+        """4x4 ``T_local_body`` of a held clone, in the current local frame."""
+        k = self._clone_index(clone_id)
+        return se3(self._cR[k], self._cp[k])
+
+    def predict_relative_pose(self, kf_clone_id: int, cur_clone_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """The filter's ``T_kf_cur`` between two clones and its 6x6 covariance
+        ``[rotation, translation]`` (right perturbation): a motion prior for the VO."""
+        T, _, idx, H = self._relative_pose_model(kf_clone_id, cur_clone_id)
+        P = self._Pbuf[np.ix_(idx, idx)]
+        return T, H @ P @ H.T
+
+    @property
+    def _dim(self) -> int:
+        return CORE + CLONE * len(self._clone_ids)
+
+    def _clone_index(self, clone_id: int) -> int:
+        try:
+            return self._clone_ids.index(clone_id)
+        except ValueError:
+            raise FilterException(f"no clone {clone_id!r} is held (held: {self._clone_ids})") from None
+
+    # ------------------------------------------------------------------ propagation
+
+    def propagate(self, t: float, accel: np.ndarray, gyro: np.ndarray) -> None:
+        """Strapdown integration (eq. 4.1) and error covariance propagation (eq. 4.2) to
+        the IMU sample ``(accel, gyro)`` taken at ``t``. A sample at the current time (such
+        as the first one at ``t0``) only becomes the start of the next interval; before
+        the first sample, the first interval holds the sample's value constant."""
+        f = np.array(accel, dtype=float)
+        w = np.array(gyro, dtype=float)
+        if f.shape != (3,) or w.shape != (3,):
+            raise FilterException(f"accel and gyro must have shape (3,), got {f.shape} and {w.shape}")
+        t = float(t)
+        if t < self._t:
+            raise FilterException(f"IMU sample at t={t} is older than the filter time {self._t}")
+        self._propagate(t, f, w)
+        if self._log:
+            self._log.append(["imu", t, f, w])
+            if self._log[0][1] < self._t - self.params.replay_horizon_s:
+                self._trim()
+
+    def _propagate(self, t: float, f1: np.ndarray, w1: np.ndarray) -> None:
+        if self._f_prev is None:
+            self._f_prev, self._w_prev = f1, w1
+        dt = t - self._t
+        if dt <= 0.0:
+            self._f_prev, self._w_prev = f1, w1
+            return
+        f0, w0 = self._f_prev, self._w_prev
+        ba, g = self._ba, self._g
+        E = so3_exp((0.5 * dt) * (0.5 * (w0 + w1) - self._bw))
+        R0 = self._R
+        Rh = R0 @ E
+        R1 = Rh @ E
+        fh_local = Rh @ (0.5 * (f0 + f1) - ba)
+        a0 = R0 @ (f0 - ba) + g
+        ah = fh_local + g
+        a1 = R1 @ (f1 - ba) + g
+        v0 = self._v
+        self._p = self._p + dt * v0 + (dt * dt / 6.0) * (a0 + 2.0 * ah)
+        self._v = v0 + (dt / 6.0) * (a0 + 4.0 * ah + a1)
+        self._steps += 1
+        if self._steps % _ORTHONORMALIZE_EVERY == 0:
+            U, _, Vt = np.linalg.svd(R1)
+            R1 = U @ Vt
+        self._R = R1
+        self._t = t
+        self._f_prev, self._w_prev, self._dt_last = f1, w1, dt
+
+        # error transition (linearised at the interval midpoint): the 6x9 block of Phi
+        # from [dtheta, db_a, db_w] to [dp, dv] is W = [A, R dt, A R dt] scaled per column
+        W = self._W
+        W[:, 0:3] = skew(fh_local * dt)  # A = [R f]x dt
+        W[:, 3:6] = Rh * dt
+        W[:, 6:9] = W[:, 0:3] @ W[:, 3:6]
+        Phi = self._Phi
+        Phi[0, 3] = Phi[1, 4] = Phi[2, 5] = dt
+        Phi[_P, 6:15] = W * (dt * self._phi_p_scale)
+        Phi[_V, 6:15] = W * self._phi_v_scale
+        Phi[_TH, _BW] = -W[:, 3:6]
+        P = self._Pbuf
+        P[:CORE, :CORE] = Phi @ P[:CORE, :CORE] @ Phi.T + self._process_noise(dt)
+        d = self._dim
+        if d > CORE:
+            X = Phi @ P[:CORE, CORE:d]
+            P[:CORE, CORE:d] = X
+            P[CORE:d, :CORE] = X.T
+
+    def _process_noise(self, dt: float) -> np.ndarray:
+        """``Qd = dt Q1 + dt^2 Q2 + dt^3 Q3``, cached for the IMU interval rounded to 1 ns (a
+        pure function of the rounded interval, so a replay reproduces it bit for bit)."""
+        key = round(dt, 9)
+        if key != self._q_key:
+            self._q_key = key
+            self._Qd = key * (self._Q1 + key * (self._Q2 + key * self._Q3))
+        return self._Qd
+
+    # ------------------------------------------------------------------ clones
+
+    def clone(self, clone_id: int, t: float) -> None:
+        """Stochastic clone (state augmentation, eq. 4.3) of the current pose at an image
+        trigger; ``t`` must be the time of the last propagated IMU sample."""
+        if abs(float(t) - self._t) > _TIME_EPS:
+            raise FilterException(f"clone {clone_id!r} at t={t} but the filter is at t={self._t}: propagate to the trigger time first")
+        if clone_id in self._clone_ids:
+            raise FilterException(f"clone {clone_id!r} is already held")
+        if len(self._clone_ids) >= self.params.max_clones:
+            raise FilterException(f"max_clones={self.params.max_clones} reached (held: {self._clone_ids}); drop clones no longer referenced")
+        self._clone(clone_id)
+        if self.params.replay_horizon_s > 0.0:
+            event = ["clone", self._t, clone_id, self._snapshot()]
+            self._log.append(event)
+            self._clone_event[clone_id] = event
+            self._trim()
+
+    def _clone(self, clone_id: int) -> None:
+        d = self._dim
+        P = self._Pbuf
+        sel = [6, 7, 8, 0, 1, 2]  # [dtheta, dp] of the core
+        rows = P[sel, :d]
+        P[d : d + CLONE, :d] = rows
+        P[:d, d : d + CLONE] = rows.T
+        P[d : d + CLONE, d : d + CLONE] = rows[:, sel]
+        n = len(self._clone_ids)
+        self._cR[n] = self._R
+        self._cp[n] = self._p
+        self._clone_ids.append(clone_id)
+        self._clone_t.append(self._t)
+
+    def drop_clone(self, clone_id: int) -> None:
+        """Marginalise a clone out of the state (it is no longer referenced by the VO)."""
+        self._clone_index(clone_id)
+        self._drop(clone_id)
+        if self._log:
+            self._log.append(["drop", self._t, clone_id])
+
+    def _drop(self, clone_id: int) -> None:
+        k = self._clone_ids.index(clone_id)
+        d = self._dim
+        o = CORE + CLONE * k
+        keep = np.r_[0:o, o + CLONE : d]
+        P = self._Pbuf
+        P[: d - CLONE, : d - CLONE] = P[np.ix_(keep, keep)]
+        n = len(self._clone_ids)
+        self._cR[k : n - 1] = self._cR[k + 1 : n].copy()
+        self._cp[k : n - 1] = self._cp[k + 1 : n].copy()
+        del self._clone_ids[k], self._clone_t[k]
+
+    # ------------------------------------------------------------------ updates
+
+    def update_relative_pose(self, kf_clone_id: int, cur_clone_id: int, T_kf_cur: np.ndarray, cov: np.ndarray) -> float:
+        """Visual-odometry delta pose ``T_kf_cur`` (body frames of the two clones) with
+        6x6 covariance ``[rotation, translation]``, right perturbation. Applied as if it
+        had arrived right after the later of the two clones (delay compensation, module
+        docstring). Returns the squared Mahalanobis distance (NIS) of the innovation; the
+        update is rejected (state unchanged) when it exceeds the chi-square gate
+        ``chi2.ppf(params.gate_probability, 6)`` (:attr:`relative_pose_gate`)."""
+        T = np.array(T_kf_cur, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise FilterException(f"T_kf_cur must be a finite 4x4 transform, got shape {T.shape}")
+        if np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() > 1e-6 or np.any(T[3] != (0.0, 0.0, 0.0, 1.0)):
+            raise FilterException("T_kf_cur must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
+        C = _covariance(cov, 6, "cov")
+        if kf_clone_id == cur_clone_id:
+            raise FilterException(f"a relative pose needs two different clones, got {kf_clone_id!r} twice")
+        ks = [self._clone_index(kf_clone_id), self._clone_index(cur_clone_id)]
+        anchor_id = cur_clone_id if self._clone_t[ks[1]] >= self._clone_t[ks[0]] else kf_clone_id
+        anchor_t = max(self._clone_t[ks[0]], self._clone_t[ks[1]])
+        event = ["relpose", anchor_t, kf_clone_id, cur_clone_id, T, C]
+        anchor = self._clone_event.get(anchor_id)
+        replayable = anchor is not None and anchor[1] == anchor_t and {kf_clone_id, cur_clone_id} <= set(anchor[3][10])
+        if anchor_t == self._t or not replayable:
+            nis = self._relpose(kf_clone_id, cur_clone_id, T, C)  # in time, or stochastic cloning only
+            if self._log:
+                self._log.append(event)
+            return nis
+        i = self._event_index(anchor)
+        j = i + 1
+        while j < len(self._log) and self._log[j][0] == "relpose" and self._log[j][1] == anchor_t:
+            j += 1
+        self._log.insert(j, event)
+        return self._replay_from(i, event)
+
+    @property
+    def relative_pose_gate(self) -> float:
+        """Chi-square threshold on the NIS of :meth:`update_relative_pose`."""
+        return _chi2_gate(self.params.gate_probability, 6)
+
+    def _relative_pose_model(self, kf_id: int, cur_id: int):
+        """Predicted ``T_kf_cur``, its rotation and translation, the state indices it
+        depends on and the 6x12 Jacobian over them (right-perturbation residual)."""
+        k, c = self._clone_index(kf_id), self._clone_index(cur_id)
+        Rk, pk, Rc, pc = self._cR[k], self._cp[k], self._cR[c], self._cp[c]
+        R_pred = Rk.T @ Rc
+        p_pred = Rk.T @ (pc - pk)
+        ok, oc = CORE + CLONE * k, CORE + CLONE * c
+        idx = np.r_[ok : ok + CLONE, oc : oc + CLONE]
+        RcT = Rc.T
+        H = np.zeros((6, 12))
+        # rotation residual Log(R_pred^T R_meas) ~ Rc^T (dtheta_c - dtheta_k)
+        H[0:3, 0:3] = -RcT
+        H[0:3, 6:9] = RcT
+        # translation residual R_pred^T (p_meas - p_pred) ~ Rc^T (dp_c - dp_k + [p_c - p_k]x dtheta_k)
+        H[3:6, 0:3] = RcT @ skew(pc - pk)
+        H[3:6, 3:6] = -RcT
+        H[3:6, 9:12] = RcT
+        return se3(R_pred, p_pred), (R_pred, p_pred), idx, H
+
+    def _relpose(self, kf_id: int, cur_id: int, T: np.ndarray, C: np.ndarray) -> float:
+        _, (R_pred, p_pred), idx, H = self._relative_pose_model(kf_id, cur_id)
+        r = np.concatenate([so3_log(R_pred.T @ T[:3, :3]), R_pred.T @ (T[:3, 3] - p_pred)])
+        return self._update(idx, H, r, C, self.relative_pose_gate)
+
+    def update_body_velocity(self, v_body: np.ndarray, cov: np.ndarray, yaw_rate: float | None = None, yaw_rate_var: float | None = None) -> float:
+        """Wheel odometry at the current time: body-frame velocity ``v_body = R^T v``, either
+        ``(v_x, v_y)`` with a 2x2 ``cov`` or ``(v_x, v_y, v_z)`` with 3x3 (pass ``v_z = 0`` with a
+        small variance for the no-lift constraint of a rover). Optionally the body yaw rate
+        (rate about body z) with its variance, which observes the z gyro bias through the
+        latest gyro sample. Returns the NIS; gated only if ``params.velocity_gate_probability``
+        is set (then a rejected update leaves the state unchanged)."""
+        v_body = np.array(v_body, dtype=float)
+        m = v_body.shape[0] if v_body.ndim == 1 else 0
+        if m not in (2, 3):
+            raise FilterException(f"v_body must have shape (2,) or (3,), got {v_body.shape}")
+        C = _covariance(cov, m, "cov")
+        if (yaw_rate is None) != (yaw_rate_var is None):
+            raise FilterException("yaw_rate and yaw_rate_var go together")
+        if yaw_rate is not None:
+            if not yaw_rate_var > 0.0:
+                raise FilterException(f"yaw_rate_var must be > 0, got {yaw_rate_var!r}")
+            if self._w_prev is None:
+                raise FilterException("a yaw-rate update needs an IMU sample first")
+        args = (v_body, C, None if yaw_rate is None else float(yaw_rate), None if yaw_rate_var is None else float(yaw_rate_var))
+        nis = self._velocity(*args)
+        if self._log:
+            self._log.append(["vel", self._t, *args])
+        return nis
+
+    def _velocity(self, v_body, C, yaw_rate, yaw_rate_var) -> float:
+        m = v_body.shape[0]
+        RT = self._R.T
+        n = m + (yaw_rate is not None)
+        idx = np.r_[3:9, 12:15]  # dv, dtheta, db_w
+        H = np.zeros((n, 9))
+        H[:m, 0:3] = RT[:m]
+        H[:m, 3:6] = (RT @ skew(self._v))[:m]
+        r = np.zeros(n)
+        r[:m] = v_body - (RT @ self._v)[:m]
+        Rm = np.zeros((n, n))
+        Rm[:m, :m] = C
+        if yaw_rate is not None:
+            # omega_z = w_z - b_wz - n_w: the latest gyro sample's noise adds to the variance
+            H[m, 8] = -1.0
+            r[m] = yaw_rate - (self._w_prev[2] - self._bw[2])
+            Rm[m, m] = yaw_rate_var + self.params.gyro_noise_density**2 / max(self._dt_last, 1e-3)
+        p = self.params.velocity_gate_probability
+        return self._update(idx, H, r, Rm, None if p is None else _chi2_gate(p, n))
+
+    def update_zero_velocity(self, velocity_std: float = 0.005, angular_rate_std: float | None = None) -> float:
+        """Zero-velocity update for a robot known to stand still: ``v = 0`` with
+        ``velocity_std`` per axis and, if ``angular_rate_std`` is given, ``omega = 0``
+        through the latest gyro sample (observes the gyro biases). With the IMU alone this
+        is what makes roll and pitch converge at rest: a tilt error turns gravity into
+        horizontal acceleration that the zero velocity contradicts. Returns the NIS."""
+        if not velocity_std > 0.0 or (angular_rate_std is not None and not angular_rate_std > 0.0):
+            raise FilterException(f"standard deviations must be > 0, got {velocity_std!r}, {angular_rate_std!r}")
+        if angular_rate_std is not None and self._w_prev is None:
+            raise FilterException("a zero-rate update needs an IMU sample first")
+        args = (float(velocity_std), None if angular_rate_std is None else float(angular_rate_std))
+        nis = self._zero_velocity(*args)
+        if self._log:
+            self._log.append(["zupt", self._t, *args])
+        return nis
+
+    def _zero_velocity(self, velocity_std, angular_rate_std) -> float:
+        if angular_rate_std is None:
+            idx = np.r_[3:6]
+            H = np.eye(3)
+            r = -self._v
+            Rm = np.eye(3) * velocity_std**2
+        else:
+            idx = np.r_[3:6, 12:15]
+            H = np.zeros((6, 6))
+            H[0:3, 0:3] = np.eye(3)
+            H[3:6, 3:6] = -np.eye(3)
+            r = np.concatenate([-self._v, -(self._w_prev - self._bw)])
+            wvar = angular_rate_std**2 + self.params.gyro_noise_density**2 / max(self._dt_last, 1e-3)
+            Rm = np.diag([velocity_std**2] * 3 + [wvar] * 3)
+        return self._update(idx, H, r, Rm, None)
+
+    def _update(self, idx: np.ndarray, H: np.ndarray, r: np.ndarray, Rm: np.ndarray, gate: float | None) -> float:
+        """EKF update with a Jacobian ``H`` over the state entries ``idx``; error injection
+        on the manifold (left perturbations). Returns the NIS; skips the update above ``gate``."""
+        d = self._dim
+        P = self._Pbuf[:d, :d]
+        PHt = P[:, idx] @ H.T  # d x m
+        S = H @ PHt[idx] + Rm
+        S = 0.5 * (S + S.T)
+        sol = np.linalg.solve(S, np.column_stack([r, PHt.T]))
+        nis = float(r @ sol[:, 0])
+        if gate is not None and nis > gate:
+            return nis
+        dx = PHt @ sol[:, 0]
+        P -= PHt @ sol[:, 1:]
+        P[:] = 0.5 * (P + P.T)
+        self._p = self._p + dx[_P]
+        self._v = self._v + dx[_V]
+        self._R = so3_exp(dx[_TH]) @ self._R
+        self._ba = self._ba + dx[_BA]
+        self._bw = self._bw + dx[_BW]
+        n = len(self._clone_ids)
+        if n:
+            D = dx[CORE:].reshape(n, CLONE)
+            self._cR[:n] = so3_exp_batch(D[:, 0:3]) @ self._cR[:n]
+            self._cp[:n] += D[:, 3:6]
+        return nis
+
+    # ------------------------------------------------------------------ frame switch
+
+    def frame_switch(self) -> tuple[np.ndarray, np.ndarray]:
+        """Switch the local frame into the current x, y, z and yaw (thesis 4.1.2).
+
+        Returns ``T_old_new`` (4x4, gravity-aligned: a rotation about z and a
+        translation) and the 4x4 covariance of ``[x, y, z, yaw]`` of the new frame in the
+        old one. Afterwards the pose is at the origin with yaw 0 and zero position and
+        yaw uncertainty; roll, pitch, velocity (rotated), biases and clones (expressed in
+        the new frame) keep their uncertainty. Delayed deltas for clones captured before
+        the switch are applied by stochastic cloning (no replay across a switch)."""
+        roll, pitch, yaw = euler_zyx(self._R)
+        j_yaw = euler_zyx_jacobian_inv(roll, pitch, yaw)[2]  # d_yaw = j_yaw . dtheta
+        d = self._dim
+        P = self._Pbuf[:d, :d]
+        J4 = np.zeros((4, d))
+        J4[0:3, _P] = np.eye(3)
+        J4[3, _TH] = j_yaw
+        cov4 = J4 @ P @ J4.T
+        Rz = rot_z(yaw)
+        RzT = Rz.T
+        p0 = self._p
+        T_old_new = se3(Rz, p0)
+
+        e3 = np.array([0.0, 0.0, 1.0])
+        v_new = RzT @ self._v
+        J = np.zeros((d, d))
+        # dp' = 0 (the new frame sits at the true position)
+        J[_V, _V] = RzT
+        J[_V, _TH] = np.outer(np.cross(v_new, e3), j_yaw)
+        J[_TH, _TH] = RzT - np.outer(e3, j_yaw)
+        J[9:15, 9:15] = np.eye(6)
+        n = len(self._clone_ids)
+        pc_all = (self._cp[:n] - p0) @ Rz  # rows: Rz^T (p_c - p)
+        for k in range(n):
+            o = CORE + CLONE * k
+            pc_new = pc_all[k]
+            J[o : o + 3, o : o + 3] = RzT
+            J[o : o + 3, _TH] = -np.outer(e3, j_yaw)
+            J[o + 3 : o + 6, o + 3 : o + 6] = RzT
+            J[o + 3 : o + 6, _P] = -RzT
+            J[o + 3 : o + 6, _TH] = np.outer(np.cross(pc_new, e3), j_yaw)
+        self._cp[:n] = pc_all
+        self._cR[:n] = RzT @ self._cR[:n]
+        Pn = J @ P @ J.T
+        P[:] = 0.5 * (Pn + Pn.T)
+        self._p = np.zeros(3)
+        self._v = v_new
+        self._R = RzT @ self._R
+        self._frame_index += 1
+        self._log.clear()
+        self._clone_event.clear()
+        return T_old_new, cov4
+
+    # ------------------------------------------------------------------ delay compensation
+
+    def _snapshot(self) -> tuple:
+        d = self._dim
+        return (
+            self._t,
+            self._p,
+            self._v,
+            self._R,
+            self._ba,
+            self._bw,
+            self._f_prev,
+            self._w_prev,
+            self._dt_last,
+            self._steps,
+            list(self._clone_ids),
+            list(self._clone_t),
+            self._cR[: len(self._clone_ids)].copy(),
+            self._cp[: len(self._clone_ids)].copy(),
+            self._Pbuf[:d, :d].copy(),
+        )
+
+    def _restore(self, s: tuple) -> None:
+        # core arrays are replaced, never modified in place, so sharing them is safe; clones and P are copied
+        (self._t, self._p, self._v, self._R, self._ba, self._bw, self._f_prev, self._w_prev, self._dt_last, self._steps) = s[:10]
+        self._clone_ids, self._clone_t = list(s[10]), list(s[11])
+        n = len(self._clone_ids)
+        self._cR[:n] = s[12]
+        self._cp[:n] = s[13]
+        P = s[14]
+        self._Pbuf[: P.shape[0], : P.shape[0]] = P
+
+    def _event_index(self, event: list) -> int:
+        for i in range(len(self._log) - 1, -1, -1):
+            if self._log[i] is event:
+                return i
+        raise AssertionError("clone event missing from the log")  # unreachable: trimmed events leave _clone_event
+
+    def _replay_from(self, i: int, watch: list) -> float:
+        """Roll back to the snapshot of the clone event at log index ``i`` and re-apply
+        every later logged input; returns the NIS of the ``watch`` event."""
+        self._restore(self._log[i][3])
+        nis = float("nan")
+        for event in self._log[i + 1 :]:
+            kind = event[0]
+            if kind == "imu":
+                self._propagate(event[1], event[2], event[3])
+            elif kind == "clone":
+                self._clone(event[2])
+                event[3] = self._snapshot()
+            elif kind == "drop":
+                self._drop(event[2])
+            elif kind == "relpose":
+                value = self._relpose(*event[2:6])
+                if event is watch:
+                    nis = value
+            elif kind == "vel":
+                self._velocity(*event[2:6])
+            else:  # "zupt"
+                self._zero_velocity(*event[2:4])
+        return nis
+
+    def _trim(self) -> None:
+        """Forget inputs before the oldest clone snapshot within the replay horizon."""
+        cutoff = self._t - self.params.replay_horizon_s
+        log = self._log
+        start = len(log)
+        for i, event in enumerate(log):
+            if event[0] == "clone" and event[1] >= cutoff:
+                start = i
+                break
+        if start == 0:
+            return
+        for event in log[:start]:
+            if event[0] == "clone" and self._clone_event.get(event[2]) is event:
+                del self._clone_event[event[2]]
+        del log[:start]
+
+
+def switch_pose3_covariance(T_old_new: np.ndarray, cov4: np.ndarray, roll_pitch_var: float = 1e-10) -> np.ndarray:
+    """6x6 ``[rotation, translation]`` right-perturbation covariance (GTSAM ``Pose3``) of
+    a frame switch from :meth:`LocalReferenceFilter.frame_switch`'s ``[x, y, z, yaw]``
+    covariance. Both frames are gravity-aligned, so roll and pitch of ``T_old_new`` are
+    exact; ``roll_pitch_var`` keeps the matrix positive definite for the graph."""
+    cov4 = np.asarray(cov4, dtype=float)
+    RT = np.asarray(T_old_new, dtype=float)[:3, :3].T
+    J = np.zeros((6, 4))
+    J[2, 3] = 1.0  # Rz Exp(omega) = Rz(yaw + d_yaw): omega = e_z d_yaw
+    J[3:6, 0:3] = RT  # rho = R^T dp
+    C = J @ cov4 @ J.T
+    C[0, 0] += roll_pitch_var
+    C[1, 1] += roll_pitch_var
+    return C
