@@ -103,10 +103,13 @@ def run(
             error = "KeyboardInterrupt: run interrupted by the user\n"
         except Exception:
             error = traceback.format_exc()
-    if recorder is not None:
-        recorder.log_link_series(simulation.network.timeseries())
-        recorder.close()
-    metrics = results.write(simulation, out, error)
+    try:
+        if recorder is not None:
+            recorder.log_link_series(simulation.network.timeseries())
+        metrics = results.write(simulation, out, error, recorder)
+    finally:
+        if recorder is not None:
+            recorder.close()
     for line in results.summary_lines(metrics):
         console.print(line)
     if error:

@@ -113,3 +113,30 @@ def trajectory_metrics(
 
 def _wrap(angle: float) -> float:
     return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def nees_report(estimate: np.ndarray, truth: np.ndarray, cov: np.ndarray, angle_dims: int = 2) -> dict:
+    """NEES over time of an estimate (N, d) with covariances (N, d, d) against truth.
+
+    The first ``angle_dims`` components are angles (wrapped). Reports the mean NEES, the
+    share of samples inside the two-sided 95 % chi-square interval of ``d`` degrees of
+    freedom, and that interval; a consistent filter has a mean near ``d`` and about
+    95 % of its samples inside (consecutive samples are correlated, so the mean is not
+    held to the much tighter interval of independent samples).
+    """
+    from scipy.stats import chi2
+
+    err = estimate - truth
+    err[:, :angle_dims] = (err[:, :angle_dims] + np.pi) % (2 * np.pi) - np.pi
+    values = np.einsum("ni,nij,nj->n", err, np.linalg.inv(cov), err)
+    d = estimate.shape[1]
+    lo, hi = chi2.ppf(0.025, d), chi2.ppf(0.975, d)
+    return {
+        "dof": d,
+        "mean": float(values.mean()),
+        "median": float(np.median(values)),
+        "share_in_95_interval": float(np.mean((values >= lo) & (values <= hi))),
+        "share_above_95_interval": float(np.mean(values > hi)),
+        "interval_95": [float(lo), float(hi)],
+        "series": values.tolist(),
+    }

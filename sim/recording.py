@@ -84,6 +84,25 @@ class Recorder:
             depth = cv2.resize(stereo.depth, size, interpolation=cv2.INTER_NEAREST)
             self.rec.log(f"{base}/depth", rr.DepthImage(depth, meter=1.0))
 
+    def log_vo(self, robot: str, rig: StereoRig, result) -> None:
+        """VO inlier features of a frame on its (downsampled) left image, and the inlier count."""
+        self.rec.set_time(TIMELINE, duration=result.t)
+        base = f"cameras/{robot}/{rig.name}"
+        if len(result.keypoints):
+            self.rec.log(f"{base}/left/vo_features", rr.Points2D(result.keypoints * self.image_scale, radii=1.0, colors=[[0, 255, 0]]))
+        self.rec.log(f"vo/{robot}/inliers", rr.Scalars(float(result.inliers)))
+
+    def log_filter(self, robot: str, times: np.ndarray, T_world_est: np.ndarray, position_std: np.ndarray) -> None:
+        """The filter-only trajectory (drawn in the world via the robot's true start frame)
+        and its position standard deviation over time."""
+        self.rec.log(f"world/filter/{robot}", rr.LineStrips3D([T_world_est[:, :3, 3]], colors=[[255, 80, 80]]), static=True)
+        for axis, values in zip("xyz", position_std.T):
+            self.rec.send_columns(
+                f"filter/{robot}/position_std_{axis}",
+                indexes=[rr.TimeColumn(TIMELINE, duration=times)],
+                columns=rr.Scalars.columns(scalars=values),
+            )
+
     def log_link_event(self, event) -> None:
         """A link going up or down (``comms.LinkEvent``), as a 0/1 series per direction."""
         self.rec.set_time(TIMELINE, duration=event.t)

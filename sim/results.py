@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import csv
 import json
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import LightSource
 
+from sim import evaluation
 from sim.runner import Run
 from sim.scenario import Scenario, dump_scenario
 
@@ -43,8 +45,9 @@ def prepare(out: Path, scenario: Scenario) -> None:
     (out / "scenario.yaml").write_text(dump_scenario(scenario))
 
 
-def write(run: Run, out: Path, error: str | None = None) -> dict[str, Any]:
-    """Write every result file of ``run`` into ``out``; return the metrics dict."""
+def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[str, Any]:
+    """Write every result file of ``run`` into ``out``; return the metrics dict. With a
+    ``recorder`` (still open), the evaluated trajectories go into the recording too."""
     out.mkdir(parents=True, exist_ok=True)
     if error is not None:
         (out / "error.txt").write_text(error)
@@ -66,6 +69,14 @@ def write(run: Run, out: Path, error: str | None = None) -> dict[str, Any]:
         waypoints = [_waypoint_row(name, wp) for wp in robot.waypoints]
         route_rows += waypoints
         counts = {s: sum(w["status"] == s for w in waypoints) for s in ("reached", "failed", "pending")}
+        filter_section = None
+        if runtime.onboard is not None:
+            try:
+                filter_section = _filter_section(out, name, log, runtime.onboard, recorder)
+            except Exception as exc:  # an evaluation bug must not cost the run's other results
+                filter_section = {"status": f"evaluation failed: {type(exc).__name__}: {exc}"}
+                with (out / "error.txt").open("a") as f:
+                    f.write(f"filter evaluation of {name} failed:\n{traceback.format_exc()}\n")
         robots_metrics[name] = {
             "preset": robot.cfg.preset,
             "final_status": robot.status,
@@ -73,6 +84,7 @@ def write(run: Run, out: Path, error: str | None = None) -> dict[str, Any]:
             "route": {"waypoints": len(waypoints), **counts},
             "camera_frames": log.frames,
             "stereo": stereo,
+            "filter": filter_section,
             "lane": {
                 "utilization": runtime.lane.utilization(run.sim_time),
                 "stages": {row["stage"]: {k: v for k, v in row.items() if k not in ("robot", "stage")} for row in stages},
@@ -94,10 +106,95 @@ def write(run: Run, out: Path, error: str | None = None) -> dict[str, Any]:
         "robots": robots_metrics,
         "comms": comms,
     }
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
     if run.scenario.output.topdown_png:
         plot_topdown(run, out / "topdown.png")
+        if any(m.get("filter") for m in robots_metrics.values()):
+            plot_filter_errors(robots_metrics, out / "filter_error.png")
+    for m in robots_metrics.values():  # series went into the plot; keep metrics.json scalar-sized
+        if m.get("filter"):
+            m["filter"].pop("error_over_time", None)
+            m["filter"]["nees_roll_pitch_velocity"].pop("series", None)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
     return metrics
+
+
+def _filter_section(out: Path, name: str, log, onboard, recorder) -> dict[str, Any] | None:
+    """Filter-only trajectory against ground truth in the robot's start frame (issue 4 §4)."""
+    est = onboard.log
+    if len(est.t) < 2:
+        return {"status": "not started", "poses": len(est.t)}
+    gt_t = np.asarray(log.gt_t)
+    gt = np.stack([evaluation.pose_matrix(p) for p in log.gt_pose])
+    first = int(np.searchsorted(gt_t, est.t[0] - 1e-9))  # the filter's first frame: its start pose
+    gt_start = evaluation.in_start_frame(gt[first:])
+    T_est = np.stack(est.pose_first_frame)
+    if recorder is not None:
+        T_world_start = evaluation.gravity_aligned(gt[first])
+        recorder.log_filter(name, np.asarray(est.t), T_world_start[None] @ T_est, np.stack(est.position_std))
+    _write_tum_matrices(out / "trajectories" / f"{name}.gt_start.tum", gt_t[first:], gt_start)
+    _write_tum_matrices(out / "trajectories" / f"{name}.filter.tum", np.asarray(est.t), T_est)
+    section: dict[str, Any] = {"status": "ok"}
+    try:
+        section.update(evaluation.trajectory_metrics(np.asarray(est.t), T_est, gt_t[first:], gt_start))
+    except evaluation.EvaluationError as exc:
+        section = {"status": f"not evaluated: {exc}"}
+    section["nees_roll_pitch_velocity"] = evaluation.nees_report(
+        np.stack(est.observable), np.stack(est.observable_true), np.stack(est.observable_cov)
+    )
+    bias, bias_true = np.stack(est.bias), np.stack(est.bias_true)
+    section["bias_error"] = {
+        "accel_initial_mps2": float(np.linalg.norm(bias_true[0, :3] - bias[0, :3])),
+        "accel_final_mps2": float(np.linalg.norm(bias_true[-1, :3] - bias[-1, :3])),
+        "gyro_initial_dps": float(np.degrees(np.linalg.norm(bias_true[0, 3:] - bias[0, 3:]))),
+        "gyro_final_dps": float(np.degrees(np.linalg.norm(bias_true[-1, 3:] - bias[-1, 3:]))),
+    }
+    vo = onboard.estimator.vo_stats
+    section["vo"] = {"frames": vo.frames, "ok": vo.ok, "applied": vo.applied, "rejected_by_gate": vo.rejected, "failures": vo.failures}
+    section["frame_switches"] = len(onboard.estimator.switches)
+    return section
+
+
+def _write_tum_matrices(path: Path, times, poses: np.ndarray) -> None:
+    from scipy.spatial.transform import Rotation
+
+    quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
+    rows = [np.concatenate([[t], T[:3, 3], [q[3], q[0], q[1], q[2]]]) for t, T, q in zip(times, poses, quats)]
+    _write_tum(path, list(times), [r[1:] for r in rows])
+
+
+def plot_filter_errors(robots_metrics: dict[str, Any], path: Path) -> None:
+    """Filter-only position and yaw error over time, one line per robot."""
+    fig, (ax_p, ax_y, ax_n) = plt.subplots(3, 1, figsize=(9, 8), sharex=True, dpi=110)
+    for name, m in robots_metrics.items():
+        f = m.get("filter") or {}
+        series = f.get("error_over_time")
+        if not series:
+            continue
+        label = f"{name}: final {f['final_error_m']:.2f} m ({f['final_error_percent_of_distance']:.2f} % of {f['distance_m']:.0f} m)"
+        ax_p.plot(series["t"], series["position_m"], label=label)
+        ax_y.plot(series["t"], series["yaw_deg"], label=name)
+        nees = f["nees_roll_pitch_velocity"]
+        ax_n.plot(series["t"][: len(nees["series"])], nees["series"], lw=0.6, label=f"{name}: mean {nees['mean']:.1f}")
+    if robots_metrics:
+        any_nees = next(
+            (f["nees_roll_pitch_velocity"] for m in robots_metrics.values() if (f := m.get("filter")) and "nees_roll_pitch_velocity" in f),
+            None,
+        )
+        if any_nees:
+            for bound in any_nees["interval_95"]:
+                ax_n.axhline(bound, color="k", ls="--", lw=0.8)
+    ax_p.set_ylabel("position error [m]")
+    ax_y.set_ylabel("yaw error [deg]")
+    ax_n.set_ylabel("NEES roll, pitch, v (5 dof)")
+    ax_n.set_yscale("log")
+    ax_n.set_xlabel("simulated time [s]")
+    ax_p.set_title("local reference filter alone, in each robot's start frame (unaligned)")
+    for ax in (ax_p, ax_y, ax_n):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def runtime_metrics(run: Run) -> dict[str, Any]:
@@ -232,6 +329,13 @@ def plot_topdown(run: Run, path: Path) -> None:
     plt.close(fig)
 
 
+def _filter_summary(f: dict[str, Any] | None) -> str:
+    if not f or "final_error_m" not in f:
+        return ""
+    pct = f["final_error_percent_of_distance"]
+    return f"; filter final error {f['final_error_m']:.2f} m" + (f" ({pct:.2f} % of distance)" if pct is not None else "")
+
+
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
     """Short human summary of a run for the CLI."""
     rt = metrics["runtime"]
@@ -246,6 +350,7 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             f"{name}: {m['final_status']}, {m['distance_m']:.1f} m, waypoints {route['reached']}/{route['waypoints']} reached"
             + (f", {route['failed']} failed" if route["failed"] else "")
             + (f"; {stereo} (2-6 m)" if stereo else "")
+            + _filter_summary(m.get("filter"))
         )
     return lines
 

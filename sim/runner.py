@@ -25,6 +25,7 @@ import simpy
 from comms import Network, StereoStream, raw_stereo_load
 from sim.camera_rig import StereoRig
 from sim.lanes import ComputeModel, Device, Lane
+from sim.onboard import OnboardStack, body_camera_transform, calibration
 from sim.recording import Recorder
 from sim.robots import make_robot
 from sim.robots.base import Robot
@@ -33,7 +34,7 @@ from sim.seeding import RandomStreams
 from sim.sensors import IMU_PRESETS, ImuModel, StereoRenderer, WheelOdometryModel
 from sim.terrain import Terrain, generate_terrain
 from sim.world import World, build_world
-from slam.stereo import StereoCalibration, StereoMatcher
+from slam.stereo import StereoMatcher
 
 GROUND_TRUTH_RATE_HZ = 50.0
 ANTENNA_HEIGHT_M = {"rover": 1.6, "aerial": 0.3, "lander": 1.8}  # above the body origin / lander base
@@ -135,6 +136,7 @@ class RobotRuntime:
     matchers: list[StereoMatcher]
     odometry: WheelOdometryModel | None
     odom_every: int
+    onboard: OnboardStack | None
     log: RobotLog = field(default_factory=RobotLog)
 
 
@@ -218,7 +220,16 @@ class Run:
         if not cfg.is_aerial:
             odometry = WheelOdometryModel(cfg.wheel_odometry, self.streams.rng("wheel_odometry", robot.name))
         renderers = [StereoRenderer(self.world.model, rig, cfg.camera) for rig in robot.stereo_rigs]
-        matchers = [StereoMatcher(_calibration(rig)) for rig in robot.stereo_rigs]
+        matchers = [StereoMatcher(calibration(rig)) for rig in robot.stereo_rigs]
+        onboard = None
+        if self.scenario.slam.enabled:
+            gravity = float(-self.world.model.opt.gravity[2])
+            onboard = OnboardStack(self.scenario, robot, lane, IMU_PRESETS[preset], gravity)
+            if self.recorder is not None:
+                every = self.scenario.output.recording_image_every
+                onboard.on_vo_result = lambda result, r=robot, o=onboard, n=every: (
+                    self.recorder.log_vo(r.name, o.vo_rig, result) if result.frame_id % n == 0 else None
+                )
         return RobotRuntime(
             robot=robot,
             lane=lane,
@@ -229,6 +240,7 @@ class Run:
             matchers=matchers,
             odometry=odometry,
             odom_every=self._every(cfg.wheel_odometry.rate_hz, f"robots.{robot.name}.wheel_odometry"),
+            onboard=onboard,
         )
 
     # ------------------------------------------------------------------ network geometry
@@ -329,7 +341,7 @@ class Run:
         now = self.env.now
         data = self.world.data
         for runtime in self.robots.values():
-            robot, log = runtime.robot, runtime.log
+            robot, log, onboard = runtime.robot, runtime.log, runtime.onboard
             t = time.perf_counter()
             if tick % gt_every == 0:
                 pos, quat = robot.pose()
@@ -337,6 +349,9 @@ class Run:
                 log.gt_pose.append(np.concatenate([pos, quat]))
                 if self.recorder is not None:
                     self.recorder.log_pose(robot.name, now, pos, quat)
+                if onboard is not None:
+                    bias_true = np.concatenate([runtime.imu.accel_bias, runtime.imu.gyro_bias])
+                    onboard.record(now, robot.rotation(), robot.velocity()[0], bias_true)
             if tick % runtime.imu_every == 0:
                 specific_force = data.sensor(robot.accel_sensor).data.copy()
                 rate = data.sensor(robot.gyro_sensor).data.copy()
@@ -345,9 +360,14 @@ class Run:
                 log.imu.append(np.concatenate([accel, gyro]))
                 log.imu_true.append(np.concatenate([specific_force, rate]))
                 log.imu_bias.append(np.concatenate([runtime.imu.accel_bias, runtime.imu.gyro_bias]))
+                if onboard is not None:
+                    onboard.imu(now, accel, gyro)
             if runtime.odometry is not None and tick % runtime.odom_every == 0:
+                odom = runtime.odometry.measure(robot.wheel_states())
                 log.odom_t.append(now)
-                log.odom.append(runtime.odometry.measure(robot.wheel_states()))
+                log.odom.append(odom)
+                if onboard is not None:
+                    onboard.wheel_odometry(odom)
             t = self.timers.add("sensors", t)
             if tick % runtime.camera_every == 0:
                 self._capture(runtime, tick // runtime.camera_every, now)
@@ -365,12 +385,20 @@ class Run:
                 t = time.perf_counter()
                 self.recorder.log_frame(runtime.robot.name, rig, now, stereo)
                 self.timers.add("recording", t)
-            runtime.lane.submit(
+            for_vo = runtime.onboard is not None and rig is runtime.onboard.vo_rig
+            if for_vo:
+                T_body_cam = body_camera_transform(self.world.model, self.world.data, runtime.robot, rig.left_camera)
+                runtime.onboard.capture(frame, now, T_body_cam)
+            job = runtime.lane.submit(
                 "stereo",
                 work=lambda m=matcher, s=stereo: self._timed("stereo", m.depth, s.left, s.right),
-                on_done=lambda depth, t_done, r=runtime, s=stereo, g=rig: self._stereo_done(r, g, s, depth),
+                on_done=lambda depth, t_done, r=runtime, s=stereo, g=rig, f=frame, vo=for_vo, t0=now: self._stereo_done(
+                    r, g, s, depth, f if vo else None, t0
+                ),
                 device=Device.FPGA,
             )
+            if job is None and for_vo:
+                runtime.onboard.stereo_dropped(frame)
 
     def _timed(self, part: str, fn, *args):
         t = time.perf_counter()
@@ -378,12 +406,10 @@ class Run:
         self.timers.add(part, t)
         return out
 
-    def _stereo_done(self, runtime: RobotRuntime, rig: StereoRig, stereo, depth: np.ndarray) -> None:
+    def _stereo_done(self, runtime: RobotRuntime, rig: StereoRig, stereo, depth: np.ndarray, vo_frame: int | None, t_capture: float):
         if stereo.depth is not None:
             t = time.perf_counter()
             runtime.log.depth_error[rig.name].add(depth, stereo.depth)
             self.timers.add("evaluation", t)
-
-
-def _calibration(rig: StereoRig) -> StereoCalibration:
-    return StereoCalibration.from_intrinsics(rig.intrinsics, rig.baseline_m, rig.width, rig.height)
+        if vo_frame is not None:
+            runtime.onboard.depth_ready(vo_frame, t_capture, stereo.left, stereo.right, depth)

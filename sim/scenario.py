@@ -174,6 +174,9 @@ class RouteConfig(StrictModel):
     cruise_altitude_m: PositiveFloat = Field(3.0, description="hexacopter default height above terrain")
     land: bool = Field(False, description="hexacopter lands after the last waypoint")
     stuck_timeout_s: PositiveFloat = Field(15.0, description="no progress for this long counts as stuck")
+    start_delay_s: NonNegFloat = Field(
+        1.0, description="stand still this long before moving (the filter initialises roll and pitch at rest)"
+    )
 
     @field_validator("waypoints", mode="before")
     @classmethod
@@ -252,6 +255,11 @@ class StageCosts(StrictModel):
     """Modelled compute time per job (s). Defaults from thesis 7.1 and 8.4."""
 
     stereo_s: NonNegFloat = Field(1 / 14.6, description="FPGA SGM at up to 14.6 Hz (thesis 7.1)")
+    vo_s: NonNegFloat = Field(
+        0.25 - 1 / 14.6, description="keyframe VO on a core; with stereo about 250 ms from capture to delta pose (thesis 4.1.1)"
+    )
+    strapdown_s: NonNegFloat = Field(1e-5, description="strapdown step per IMU sample (thesis 8.4: < 0.01 ms)")
+    filter_update_s: NonNegFloat = Field(2e-4, description="Kalman update: VO delta, wheel odometry (thesis 8.4: 0.2 ms mean)")
 
 
 class ComputeConfig(StrictModel):
@@ -268,6 +276,26 @@ class OutputConfig(StrictModel):
     topdown_png: bool = True
 
 
+class SlamConfig(StrictModel):
+    """The on-board estimation stack of every robot (thesis ch. 4)."""
+
+    enabled: bool = True
+    vo_rig: str | None = Field(None, description="stereo rig used for VO (default: 'head' on rovers, 'down' on ardea)")
+    wheel_odometry: bool = Field(True, description="rovers fuse wheel odometry as body-velocity updates")
+    wheel_speed_std_mps: PositiveFloat = Field(
+        0.03, description="velocity noise the filter assumes for wheel odometry: sensor noise plus unmodelled slip"
+    )
+    wheel_yaw_rate_std_rps: PositiveFloat = Field(0.03, description="yaw-rate noise the filter assumes for wheel odometry")
+    wheel_vz_std_mps: PositiveFloat = Field(0.05, description="std of the rover's v_z = 0 pseudo-measurement")
+    frame_switch_distance_m: PositiveFloat = Field(
+        5.0, description="frame switch after this distance driven in the current frame (the submap partition, thesis 5.1.3)"
+    )
+    initial_rest_s: PositiveFloat = Field(
+        0.5,
+        description="roll and pitch initialised from the mean accelerometer reading over this long before the route starts",
+    )
+
+
 class Scenario(StrictModel):
     name: str = Field(..., pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
@@ -279,6 +307,7 @@ class Scenario(StrictModel):
     compute: ComputeConfig = ComputeConfig()
     output: OutputConfig = OutputConfig()
     comms: CommsConfig = CommsConfig()
+    slam: SlamConfig = SlamConfig()
 
     def network_nodes(self) -> list[str]:
         """Nodes of the network: the robots, the lander if there is one, and what the

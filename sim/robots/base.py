@@ -276,7 +276,7 @@ class Robot(ABC):
             self.tipped_over = True
             self.route.fail_remaining(t, "tipped_over")
             self.phase = "tipped over"
-        if self.tipped_over:
+        if self.tipped_over or t < self.cfg.route.start_delay_s:
             self._stop()
             return
         self._control(t, terrain)

@@ -1,0 +1,175 @@
+"""One robot's on-board estimation pipeline as lane jobs (design notes §2.4, issue 4 §3).
+
+Sensor data from the run loop become jobs on the robot's lane, in the order its
+computer would process them: every IMU sample a ``strapdown`` job, every wheel
+odometry sample and every image trigger (filter clone) a ``filter_update`` job; a
+stereo pair is matched on the FPGA (``stereo``), then the VO rig's depth goes to a
+``vo`` job on a core, whose delta pose is applied by a ``filter_update`` job when
+it is done: about 250 ms after capture with the default costs, so estimates appear
+when a robot would have them. Real code runs in every job; only its duration is
+modelled. What the filter believes is logged next to ground truth for evaluation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from sim.camera_rig import StereoRig
+from sim.lanes import Lane
+from sim.robots.base import Robot
+from sim.scenario import Scenario
+from sim.sensors import ImuSpec
+from slam.filter import FilterParams
+from slam.local_estimator import LocalEstimator
+from slam.stereo import StereoCalibration
+from slam.vo import StereoVO, VoResult
+
+# MuJoCo cameras look along -z with y up; OpenCV cameras along +z with y down.
+MUJOCO_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
+
+
+def filter_params(spec: ImuSpec, gravity: float) -> FilterParams:
+    """The filter's noise model from the IMU's datasheet values (what the robot knows).
+
+    Roll and pitch start from the resting accelerometer, so an accelerometer bias b
+    tilts them by about b / g: the initial tilt uncertainty includes that."""
+    tilt_std = math.hypot(FilterParams.initial_roll_pitch_std, spec.accel_bias_initial_std / gravity)
+    return FilterParams(
+        initial_roll_pitch_std=tilt_std,
+        gyro_noise_density=spec.gyro_noise_density,
+        accel_noise_density=spec.accel_noise_density,
+        gyro_bias_random_walk=spec.gyro_random_walk,
+        accel_bias_random_walk=spec.accel_random_walk,
+        initial_accel_bias_std=spec.accel_bias_initial_std,
+        initial_gyro_bias_std=spec.gyro_bias_initial_std,
+        gravity=gravity,
+    )
+
+
+def calibration(rig: StereoRig) -> StereoCalibration:
+    return StereoCalibration.from_intrinsics(rig.intrinsics, rig.baseline_m, rig.width, rig.height)
+
+
+def body_camera_transform(model: mujoco.MjModel, data: mujoco.MjData, robot: Robot, camera: str) -> np.ndarray:
+    """T_body_cam of a camera (OpenCV axes) from the robot's kinematics: the pan-tilt
+    head's joint encoders on the LRU, fixed mounts on ARDEA."""
+    site = model.site(robot.imu_site).id
+    cam = model.camera(camera).id
+    R_wb = data.site_xmat[site].reshape(3, 3)
+    R_wc = data.cam_xmat[cam].reshape(3, 3) @ MUJOCO_TO_OPENCV
+    T = np.eye(4)
+    T[:3, :3] = R_wb.T @ R_wc
+    T[:3, 3] = R_wb.T @ (data.cam_xpos[cam] - data.site_xpos[site])
+    return T
+
+
+@dataclass
+class EstimateLog:
+    """The filter's online estimates, sampled on the ground-truth clock."""
+
+    t: list[float] = field(default_factory=list)
+    pose_first_frame: list[np.ndarray] = field(default_factory=list)  # 4x4, switches chained
+    frame_index: list[int] = field(default_factory=list)
+    observable: list[np.ndarray] = field(default_factory=list)  # [roll, pitch, v_body] estimate
+    observable_cov: list[np.ndarray] = field(default_factory=list)  # 5x5
+    observable_true: list[np.ndarray] = field(default_factory=list)
+    position_std: list[np.ndarray] = field(default_factory=list)  # (3,) in the current local frame
+    bias: list[np.ndarray] = field(default_factory=list)  # [b_a, b_w] estimate
+    bias_true: list[np.ndarray] = field(default_factory=list)
+
+
+class OnboardStack:
+    """Feeds a robot's sensors into its :class:`LocalEstimator` through its lane."""
+
+    def __init__(self, scenario: Scenario, robot: Robot, lane: Lane, imu_spec: ImuSpec, gravity: float):
+        cfg = scenario.slam
+        self.robot = robot
+        self.lane = lane
+        self.slam_cfg = cfg
+        self.use_odometry = cfg.wheel_odometry and not robot.cfg.is_aerial
+        rig_name = cfg.vo_rig or ("down" if robot.cfg.is_aerial else "head")
+        rigs = {rig.name: rig for rig in robot.stereo_rigs}
+        if rig_name not in rigs:
+            raise ValueError(f"slam.vo_rig {rig_name!r} is not a stereo rig of {robot.name}; rigs: {sorted(rigs)}")
+        self.vo_rig = rigs[rig_name]
+        self.estimator = LocalEstimator(
+            filter_params(imu_spec, gravity),
+            StereoVO(calibration(self.vo_rig)),
+            init_time=robot.cfg.route.start_delay_s,
+            rest_window=cfg.initial_rest_s,
+            frame_switch_distance=cfg.frame_switch_distance_m,
+        )
+        self.log = EstimateLog()
+        self.on_vo_result = None  # optional callback(result), e.g. the recording
+        self._T_first_frame = np.eye(4)
+        self._switches_chained = 0
+
+    # ------------------------------------------------------------------ sensor events
+
+    def imu(self, now: float, accel: np.ndarray, gyro: np.ndarray) -> None:
+        self.lane.submit("strapdown", work=lambda: self.estimator.on_imu(now, accel, gyro))
+
+    def wheel_odometry(self, v_body: np.ndarray) -> None:
+        if self.use_odometry:
+            cfg = self.slam_cfg
+            self.lane.submit(
+                "filter_update",
+                work=lambda: self.estimator.on_wheel_odometry(
+                    v_body, cfg.wheel_speed_std_mps, cfg.wheel_yaw_rate_std_rps, cfg.wheel_vz_std_mps
+                ),
+            )
+
+    def capture(self, frame_id: int, now: float, T_body_cam: np.ndarray) -> None:
+        """Image trigger of the VO rig: the filter clones its state."""
+        job = self.lane.submit("filter_update", work=lambda: self.estimator.on_capture(frame_id, now, T_body_cam))
+        if job is None:
+            self.estimator.abandon(frame_id)
+
+    def depth_ready(self, frame_id: int, now: float, left: np.ndarray, right: np.ndarray, depth: np.ndarray | None) -> None:
+        """Stereo matching of the VO rig finished: VO runs as its own job."""
+        if frame_id not in self.estimator.pending:
+            return  # captured before the filter started, or its clone job was dropped
+        job = self.lane.submit(
+            "vo",
+            work=lambda: self.estimator.process_vo(frame_id, now, left, right, depth),
+            on_done=lambda result, t_done: self._vo_done(result),
+        )
+        if job is None:
+            self.lane.submit("filter_update", work=lambda: self.estimator.abandon(frame_id))
+
+    def stereo_dropped(self, frame_id: int) -> None:
+        self.lane.submit("filter_update", work=lambda: self.estimator.abandon(frame_id))
+
+    def _vo_done(self, result: VoResult) -> None:
+        if self.on_vo_result is not None:
+            self.on_vo_result(result)
+        self.lane.submit("filter_update", work=lambda: self.estimator.on_vo(result))
+
+    # ------------------------------------------------------------------ logging
+
+    def record(self, now: float, R_world_body: np.ndarray, v_world: np.ndarray, bias_true: np.ndarray) -> None:
+        """Log the current estimate next to the truth (truth never enters the estimator)."""
+        est = self.estimator
+        if not est.initialised:
+            return
+        f = est.filter
+        while self._switches_chained < len(est.switches):
+            self._T_first_frame = self._T_first_frame @ est.switches[self._switches_chained].T_old_new
+            self._switches_chained += 1
+        log = self.log
+        log.t.append(now)
+        log.pose_first_frame.append(self._T_first_frame @ f.pose())
+        log.frame_index.append(f.frame_index)
+        x, cov = f.observable_estimate()
+        log.observable.append(x)
+        log.observable_cov.append(cov)
+        r = R_world_body
+        roll, pitch = np.arctan2(r[2, 1], r[2, 2]), -np.arcsin(np.clip(r[2, 0], -1, 1))
+        log.observable_true.append(np.concatenate([[roll, pitch], r.T @ v_world]))
+        log.position_std.append(np.sqrt(np.diag(f.covariance()[:3, :3])))
+        log.bias.append(np.concatenate([f.accel_bias, f.gyro_bias]))
+        log.bias_true.append(bias_true)
