@@ -10,6 +10,8 @@ geometric with mean ``1 / p_bad_to_good`` and the long-run loss rate is
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import numpy as np
 
 from comms.config import LossConfig, LossModel
@@ -37,11 +39,12 @@ class UniformStream:
         return float(value)
 
 
-class Loss:
+class Loss(ABC):
     """Decides for each fragment whether it is lost."""
 
-    def lost(self) -> bool:  # pragma: no cover - interface
-        raise NotImplementedError
+    @abstractmethod
+    def lost(self) -> bool:
+        """True if the next fragment is lost."""
 
 
 class NoLoss(Loss):
