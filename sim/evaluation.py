@@ -94,8 +94,10 @@ def trajectory_metrics(
         try:
             rpe.process_data((ref, est))
             out["rpe_per_m"] = _stats(rpe)
-        except metrics.MetricsException:
-            pass  # too few pose pairs 1 m apart: RPE is left out, not faked
+        except metrics.MetricsException as exc:
+            out["rpe_per_m"] = {"status": f"not computed: {exc}"}
+    else:
+        out["rpe_per_m"] = {"status": f"not computed: only {distance:.2f} m travelled"}
     final = float(np.linalg.norm(ref.positions_xyz[-1] - est.positions_xyz[-1]))
     yaw_err = np.array(
         [_wrap(yaw_of(e[:3, :3]) - yaw_of(r[:3, :3])) for r, e in zip(ref.poses_se3, est.poses_se3)]

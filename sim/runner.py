@@ -329,8 +329,6 @@ class Run:
                 progress(self.env.now, self.statuses())
             if all(r.robot.finished for r in self.robots.values()):
                 break
-        # let jobs that are already running finish their compute time
-        yield self.env.timeout(max((r.lane.compute.cfg.stages.stereo_s for r in self.robots.values()), default=0.0))
         if progress is not None:
             progress(self.env.now, self.statuses())
 
