@@ -279,18 +279,12 @@ def plot_topdown(run: Run, path: Path) -> None:
     terrain = run.terrain
     half = terrain.size_m / 2
     fig, ax = plt.subplots(figsize=(8.5, 8), dpi=110)
-    shade = LightSource(azdeg=315, altdeg=35).hillshade(terrain.heights, dx=terrain.resolution_m, dy=terrain.resolution_m)
-    ax.imshow(shade, cmap="gray", origin="lower", extent=(-half, half, -half, half), vmin=0, vmax=1)
-    levels = ax.contour(
-        np.linspace(-half, half, terrain.heights.shape[1]),
-        np.linspace(-half, half, terrain.heights.shape[0]),
-        terrain.heights,
-        levels=12,
-        linewidths=0.4,
-        cmap="copper",
-        alpha=0.6,
+    norm = plt.Normalize(terrain.heights.min(), terrain.heights.max())
+    rgb = LightSource(azdeg=315, altdeg=35).shade(
+        terrain.heights, cmap=plt.cm.gist_earth, norm=norm, blend_mode="soft", dx=terrain.resolution_m, dy=terrain.resolution_m
     )
-    fig.colorbar(levels, ax=ax, shrink=0.6, label="terrain height [m]")
+    ax.imshow(rgb, origin="lower", extent=(-half, half, -half, half))
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=plt.cm.gist_earth), ax=ax, shrink=0.6, label="terrain height [m]")
     for rock in terrain.rocks:
         ax.add_patch(plt.Circle(rock.center[:2], max(rock.radii[:2]), color="#8c564b", alpha=0.8, lw=0))
     if terrain.lander is not None:
