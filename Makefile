@@ -30,6 +30,7 @@ test-slow: setup
 
 bench: setup
 	$(BIN)/python -m sim.bench scenarios/quickstart.yaml --out results/bench
+	$(BIN)/python -m sim.bench scenarios/etna_two_rovers.yaml --variants no_depth_truth --out results/bench/etna
 	$(BIN)/python -m comms.bench --out results/bench/comms.json
 
 lint: setup

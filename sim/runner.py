@@ -31,12 +31,16 @@ from sim.robots import make_robot
 from sim.robots.base import Robot
 from sim.scenario import Scenario
 from sim.seeding import RandomStreams
-from sim.sensors import IMU_PRESETS, ImuModel, StereoRenderer, WheelOdometryModel
+from sim.sensors import IMU_PRESETS, ImuModel, InertialAverager, StereoRenderer, WheelOdometryModel
 from sim.terrain import Terrain, generate_terrain
 from sim.world import World, build_world
 from slam.stereo import StereoMatcher
 
 GROUND_TRUTH_RATE_HZ = 50.0
+#: Simulated seconds of physics before t = 0 in which the robots, placed a little above
+#: the ground, come to rest on it (a tilted ARDEA rocks on its legs for most of a second):
+#: the run starts with every robot resting, as the filters' initialisation assumes.
+SETTLE_S = 2.0
 ANTENNA_HEIGHT_M = {"rover": 1.6, "aerial": 0.3, "lander": 1.8}  # above the body origin / lander base
 DEPTH_BINS_M = (0.0, 2.0, 4.0, 6.0, 10.0, math.inf)
 DEPTH_SAMPLE_STRIDE = 2  # score every 2nd pixel in each direction
@@ -130,6 +134,7 @@ class RobotRuntime:
     robot: Robot
     lane: Lane
     imu: ImuModel
+    inertial: InertialAverager
     imu_every: int
     camera_every: int
     renderers: list[StereoRenderer]
@@ -172,9 +177,10 @@ class Run:
         self.terrain: Terrain = generate_terrain(scenario.terrain, self.streams.rng("terrain"), self._keep_clear())
         robots = [make_robot(cfg, tags[cfg.name]) for cfg in scenario.robots]
         self.world: World = build_world(scenario, self.terrain, robots)
-        t0 = self.timers.add("setup", t0)
         self.tick_s = 1.0 / scenario.physics.control_rate_hz
         self.substeps = round(self.tick_s / scenario.physics.timestep_s)
+        self._settle(robots)
+        t0 = self.timers.add("setup", t0)
         self.robots = {r.name: self._runtime(r) for r in robots}
         self._root_body = {r.name: self._robot_root_body(r) for r in robots}
         self.network = Network(
@@ -189,6 +195,16 @@ class Run:
             self.recorder.log_world(self.terrain, self.world)
             self.network.subscribe(self.recorder.log_link_event)
         self.timers.add("setup", t0)
+
+    def _settle(self, robots: list[Robot]) -> None:
+        """Let the robots come to rest (motors stopped) for :data:`SETTLE_S`, then restart the clock at 0."""
+        model, data = self.world.model, self.world.data
+        for _ in range(round(SETTLE_S / self.tick_s)):
+            for robot in robots:
+                robot.control(-SETTLE_S, self.terrain)
+            mujoco.mj_step(model, data, nstep=self.substeps)
+        data.time = 0.0
+        mujoco.mj_forward(model, data)
 
     def _keep_clear(self) -> list[tuple[tuple[float, float], float]]:
         clear = self.scenario.terrain.rocks.clearance_m
@@ -234,6 +250,7 @@ class Run:
             robot=robot,
             lane=lane,
             imu=imu,
+            inertial=InertialAverager(self.world.model, robot.accel_sensor, robot.gyro_sensor),
             imu_every=self._every(cfg.imu.rate_hz, f"robots.{robot.name}.imu"),
             camera_every=self._every(cfg.camera.rate_hz, f"robots.{robot.name}.camera"),
             renderers=renderers,
@@ -320,7 +337,10 @@ class Run:
             for runtime in self.robots.values():
                 runtime.robot.control(self.env.now, self.terrain)
             t = self.timers.add("control", t)
-            mujoco.mj_step(model, data, nstep=self.substeps)
+            for _ in range(self.substeps):
+                mujoco.mj_step(model, data)
+                for runtime in self.robots.values():
+                    runtime.inertial.accumulate(data)
             self.timers.add("physics", t)
             tick += 1
             yield self.env.timeout(self.tick_s)
@@ -351,8 +371,7 @@ class Run:
                     bias_true = np.concatenate([runtime.imu.accel_bias, runtime.imu.gyro_bias])
                     onboard.record(now, robot.rotation(), robot.velocity()[0], bias_true)
             if tick % runtime.imu_every == 0:
-                specific_force = data.sensor(robot.accel_sensor).data.copy()
-                rate = data.sensor(robot.gyro_sensor).data.copy()
+                specific_force, rate = runtime.inertial.take(data)
                 accel, gyro = runtime.imu.measure(specific_force, rate)
                 log.imu_t.append(now)
                 log.imu.append(np.concatenate([accel, gyro]))

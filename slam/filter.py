@@ -198,12 +198,20 @@ class LocalReferenceFilter:
         t0: float,
         accel_at_rest: np.ndarray | None = None,
         gyro_at_rest: np.ndarray | None = None,
+        rest_duration_s: float | None = None,
     ):
         """Start at time ``t0`` at rest in the first local frame (the start pose's x, y, z
         and yaw: position 0, yaw 0). Roll and pitch come from the mean specific force of a
-        resting accelerometer ``accel_at_rest`` (it measures ``-R^T g``) if given, else 0;
-        ``gyro_at_rest`` (mean resting gyro) sets the initial gyro bias estimate if given
-        (``initial_gyro_bias_std`` should then describe its error)."""
+        resting accelerometer ``accel_at_rest`` (it measures ``-R^T g + b_a``) if given, else
+        0; then the tilt error is the accelerometer bias across gravity over ``g``, and the
+        prior holds that correlation on top of ``initial_roll_pitch_std`` (which then only
+        describes what else tilts the estimate: vibration, a non-rigid stand). With
+        ``rest_duration_s`` (the time ``accel_at_rest`` was averaged over), the bias along
+        gravity is observed too: ``|f| - g`` along ``f``, with the variance of the mean
+        (``accel_noise_density^2 / rest_duration_s``); otherwise it starts at 0 with
+        ``initial_accel_bias_std``. ``gyro_at_rest`` (mean resting gyro) sets the initial
+        gyro bias estimate if given (``initial_gyro_bias_std`` should then describe its
+        error)."""
         self.params = params
         self._g = np.array([0.0, 0.0, -params.gravity])
         roll = pitch = 0.0
@@ -218,6 +226,11 @@ class LocalReferenceFilter:
         self._v = np.zeros(3)
         self._R = rot_zyx(roll, pitch, 0.0)
         self._ba = np.zeros(3)
+        if rest_duration_s is not None:
+            if accel_at_rest is None or not rest_duration_s > 0.0:
+                raise FilterException(f"rest_duration_s needs accel_at_rest and must be > 0, got {rest_duration_s!r}")
+            u = f / np.linalg.norm(f)
+            self._ba = (np.linalg.norm(f) - params.gravity) * u
         self._bw = np.zeros(3) if gyro_at_rest is None else _vector(gyro_at_rest, 3, "gyro_at_rest")
         self._f_prev: np.ndarray | None = None
         self._w_prev: np.ndarray | None = None
@@ -239,7 +252,24 @@ class LocalReferenceFilter:
         rp2, y2 = params.initial_roll_pitch_std**2, params.initial_yaw_std**2
         P0[_TH, _TH] = M @ np.diag([rp2, rp2, y2]) @ M.T
         P0[_BA, _BA] = np.eye(3) * params.initial_accel_bias_std**2
+        if rest_duration_s is not None:
+            along = params.accel_noise_density**2 / rest_duration_s + params.accel_bias_random_walk**2 * rest_duration_s
+            P0[_BA, _BA] += (along - params.initial_accel_bias_std**2) * np.outer(u, u)
         P0[_BW, _BW] = np.eye(3) * params.initial_gyro_bias_std**2
+        if accel_at_rest is not None:
+            # the resting specific force holds the accelerometer bias: the true roll and
+            # pitch are those of f - b_a, so the tilt error is -J_f b_a (J_f: derivative of
+            # the two atan2 above), as a left perturbation through M; it is fully
+            # correlated with the bias error (their sum is what gravity observes)
+            fx, fy, fz = f
+            h2, n2 = fy * fy + fz * fz, f @ f
+            h = math.sqrt(h2)
+            J_f = np.array([[0.0, fz / h2, -fy / h2], [-h / n2, fx * fy / (h * n2), fx * fz / (h * n2)]])
+            T = -M[:, :2] @ J_f
+            Pb = P0[_BA, _BA]
+            P0[_TH, _TH] += T @ Pb @ T.T
+            P0[_TH, _BA] = T @ Pb
+            P0[_BA, _TH] = (T @ Pb).T
 
         # discrete process noise Qd = dt Q1 + dt^2 Q2 + dt^3 Q3 (isotropic densities, so
         # independent of the attitude)

@@ -10,7 +10,8 @@ between left-camera frames, are turned into body-frame deltas between filter clo
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -44,10 +45,11 @@ class VoStats:
 class LocalEstimator:
     """The robot's local reference filter with its inputs (thesis 4.1, 4.1.1, 4.1.2).
 
-    The filter starts at ``init_time``: roll and pitch from the mean accelerometer over
-    the last ``rest_window`` seconds before it (the robot stands still), position and
-    yaw zero, so the first local frame is the start pose's x, y, z and yaw. A frame
-    switch is triggered by :meth:`frame_switch` (the mapping's submap partition) or, with
+    The filter starts at ``init_time``: roll and pitch and the accelerometer bias along
+    gravity from the mean accelerometer, the gyro biases from the mean gyro, over the last
+    ``rest_window`` seconds before it (the robot stands still), position and yaw zero, so
+    the first local frame is the start pose's x, y, z and yaw. A frame switch is
+    triggered by :meth:`frame_switch` (the mapping's submap partition) or, with
     ``frame_switch_distance`` set, after that distance travelled in the current frame.
     """
 
@@ -95,7 +97,13 @@ class LocalEstimator:
                 self._rest_accel.append(np.asarray(accel, float))
                 self._rest_gyro.append(np.asarray(gyro, float))
             if t >= self.init_time - 1e-9:
-                self.filter = LocalReferenceFilter(self.params, t, accel_at_rest=np.mean(self._rest_accel, axis=0))
+                self.filter = LocalReferenceFilter(
+                    replace(self.params, initial_gyro_bias_std=self._rest_gyro_bias_std()),
+                    t,
+                    accel_at_rest=np.mean(self._rest_accel, axis=0),
+                    gyro_at_rest=np.mean(self._rest_gyro, axis=0),
+                    rest_duration_s=self.rest_window,
+                )
                 self._last_p = np.zeros(3)
             return
         self.filter.propagate(t, accel, gyro)
@@ -105,6 +113,12 @@ class LocalEstimator:
         self._last_p = p
         if self.frame_switch_distance is not None and self._distance >= self.frame_switch_distance:
             self.frame_switch()
+
+    def _rest_gyro_bias_std(self) -> float:
+        """Error of the resting gyro mean as a bias estimate: white noise averaged over the
+        window (``density / sqrt(window)``) and the bias walk within it."""
+        p, window = self.params, self.rest_window
+        return math.hypot(p.gyro_noise_density / math.sqrt(window), p.gyro_bias_random_walk * math.sqrt(window))
 
     def on_wheel_odometry(self, v_body: np.ndarray, speed_std: float, yaw_rate_std: float, vz_std: float = 0.05) -> None:
         """Wheel odometry ``(v_x, v_y, yaw_rate)`` as a body-velocity update; ``v_z = 0``

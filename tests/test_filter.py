@@ -343,10 +343,31 @@ def test_initial_state_from_resting_accelerometer():
     assert euler_zyx(f.pose()[:3, :3])[2] == pytest.approx(0.0, abs=1e-12)
     # start pose defines the frame: no position or yaw uncertainty; roll/pitch as given
     np.testing.assert_allclose(f.covariance()[0:3, 0:3], 0.0)
-    np.testing.assert_allclose(f.roll_pitch_covariance(), np.eye(2) * PARAMS.initial_roll_pitch_std**2, rtol=1e-12)
     Mi = euler_zyx_jacobian_inv(0.1, -0.2, 0.0)
     assert Mi[2] @ f.covariance()[6:9, 6:9] @ Mi[2] == pytest.approx(0.0, abs=1e-20)
     np.testing.assert_allclose(f.pose_covariance()[3:, 3:], 0.0)
+
+
+def test_resting_tilt_prior_is_correlated_with_the_accelerometer_bias():
+    """The resting accelerometer reads -R^T g + b_a: the initial tilt error is the bias
+    across gravity over g. The prior must say so (its covariance predicts the tilt error
+    from the bias error exactly), leaving only initial_roll_pitch_std independent."""
+    roll, pitch = 0.1, -0.2
+    R_true = rot_zyx(roll, pitch, 0.0)
+    f = LocalReferenceFilter(PARAMS, 0.0, accel_at_rest=resting_accel(roll, pitch))
+    P = f.covariance()
+    Pbb, Ptb, Ptt = P[9:12, 9:12], P[6:9, 9:12], P[6:9, 6:9]
+    gain = Ptb @ np.linalg.inv(Pbb)  # best linear prediction of dtheta from db_a
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        b = rng.normal(0.0, 0.05, 3)
+        est = LocalReferenceFilter(PARAMS, 0.0, accel_at_rest=resting_accel(roll, pitch) + b)
+        R_est = est.pose()[:3, :3]
+        dtheta = so3_log(R_true @ R_est.T)  # left error; both yaws are 0 by definition
+        np.testing.assert_allclose(gain @ b, dtheta, atol=0.02 * np.linalg.norm(b) / 9.81)
+    # what remains after knowing the bias is the independent resting tilt
+    rest = Ptt - Ptb @ np.linalg.solve(Pbb, Ptb.T)
+    np.testing.assert_allclose(np.linalg.eigvalsh(rest[:2, :2]), [PARAMS.initial_roll_pitch_std**2] * 2, rtol=0.1)
 
 
 # --------------------------------------------------------------------------- strapdown (eq. 4.1)

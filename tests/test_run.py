@@ -103,3 +103,60 @@ def test_filter_estimates_appear_after_the_vo_latency(quickstart):
     assert lane["vo"]["completed"] > 0 and lane["strapdown"]["completed"] > 1000
     stages = quickstart.scenario.compute.stages
     assert lane["stereo"]["latency_mean_s"] + lane["vo"]["latency_mean_s"] >= stages.stereo_s + stages.vo_s - 1e-9
+
+
+def test_filter_nees_and_biases_against_truth(quickstart):
+    """Consistency of the observable states (roll, pitch, body velocity; 5 dof, a
+    consistent filter has a mean NEES of 5) and the gyro biases. Measured on this 12 s
+    run (seed 1): lru1 mean 15.1 / median 4.4 (brief spikes in the point turn at 11 s),
+    lru2 2.7 / 1.7, ARDEA 21 / 21: its roll stays overconfident by about 2x after the
+    ADIS16407's 50 mg turn-on accelerometer bias tilted the start (docs/estimation.md).
+    The bounds hold those values with a margin for other seeds; ARDEA's is a regression
+    guard for a known limitation, not a claim of consistency."""
+    from sim.evaluation import nees_report
+
+    bounds = {"lru1": (25.0, 10.0), "lru2": (10.0, 5.0), "ardea": (35.0, 35.0)}  # mean, median
+    for robot, (mean_bound, median_bound) in bounds.items():
+        log = quickstart.robots[robot].onboard.log
+        report = nees_report(np.stack(log.observable), np.stack(log.observable_true), np.stack(log.observable_cov))
+        assert report["mean"] < mean_bound and report["median"] < median_bound, (robot, report["mean"], report["median"])
+        bias, truth = np.stack(log.bias), np.stack(log.bias_true)
+        # gyro biases from the resting start: within 0.1 deg/s all along (turn-on spread: 0.5 and 3 deg/s)
+        assert np.degrees(np.abs(bias[:, 3:] - truth[:, 3:])).max() < 0.1, robot
+
+
+def test_imu_samples_integrate_to_the_physics_velocity(monkeypatch):
+    """The IMU averages the physics over each sample period (sim.sensors.InertialAverager):
+    strapdown integration of the noise-free samples with the true attitude reproduces
+    the velocity change, also through the rover's wheel-ground contacts; and the run
+    starts with every robot resting."""
+    import copy
+
+    from slam.lie import so3_exp
+
+    simulation = Run(load_scenario(copy.deepcopy(SMALL), ["duration_s=3", "slam.enabled=false"]))
+    truth = {name: [] for name in simulation.robots}
+    sample = simulation._sample
+
+    def sample_and_record(tick, gt_every):
+        sample(tick, gt_every)
+        for name, rt in simulation.robots.items():
+            truth[name].append((rt.robot.velocity()[0], rt.robot.rotation()))
+
+    monkeypatch.setattr(simulation, "_sample", sample_and_record)
+    simulation.execute()
+    for name, rt in simulation.robots.items():
+        assert np.linalg.norm(truth[name][0][0]) < 5e-3, (name, truth[name][0][0])  # settled: within the filter's 0.01 m/s prior
+        imu = np.stack(rt.log.imu_true)
+        v = np.stack([v for v, _ in truth[name]])
+        R = [R for _, R in truth[name]]
+        dt = 1.0 / rt.robot.cfg.imu.rate_hz
+        v_int = v[0].copy()
+        worst = 0.0
+        g = simulation.world.model.opt.gravity
+        for k in range(1, len(imu)):  # IMU at the control rate here: sample k is tick k
+            R_mid = R[k - 1] @ so3_exp(0.5 * dt * imu[k, 3:])
+            a = R_mid @ imu[k, :3] + g
+            v_int += a * dt
+            worst = max(worst, float(np.linalg.norm(v_int - v[k])))
+        assert worst < 0.01, (name, worst)  # one instantaneous sample per period: several cm/s on the rover
