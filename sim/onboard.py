@@ -21,11 +21,14 @@ import numpy as np
 from sim.camera_rig import StereoRig
 from sim.lanes import Lane
 from sim.robots.base import Robot
-from sim.scenario import Scenario
+from sim.scenario import MappingConfig, Scenario
 from sim.sensors import ImuSpec
 from slam.filter import FilterParams
-from slam.local_estimator import LocalEstimator
+from slam.local_estimator import FramePose, LocalEstimator
+from slam.local_mapper import LocalMapper
+from slam.obstacles import ObstacleParams
 from slam.stereo import StereoCalibration
+from slam.submap import SubmapParams
 from slam.vo import StereoVO, VoResult
 
 # MuJoCo cameras look along -z with y up; OpenCV cameras along +z with y down.
@@ -34,6 +37,10 @@ MUJOCO_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 #: 0.5 s of samples has a noise of a few thousandths of a degree; the rest is margin for
 #: a robot that is not perfectly still (motors idling, a settling suspension).
 RESTING_TILT_STD = math.radians(0.2)
+#: An aerial robot maps only this high above its take-off point (filter estimate): its
+#: downward stereo matches from StereoMatcher's 0.5 m minimum depth, and closer ground
+#: (standing, taking off, landing) gives SGBM mismatches that put points up to 2 m off.
+AERIAL_MAPPING_HEIGHT_M = 0.8
 
 
 def filter_params(spec: ImuSpec, gravity: float) -> FilterParams:
@@ -52,6 +59,24 @@ def filter_params(spec: ImuSpec, gravity: float) -> FilterParams:
         initial_gyro_bias_std=spec.gyro_bias_initial_std,
         gravity=gravity,
     )
+
+
+def local_mapper(robot: str, calib: StereoCalibration, cfg: MappingConfig) -> LocalMapper:
+    """The robot's mapping from its scenario section (thesis 5.1)."""
+    obstacles = ObstacleParams(
+        step_height_m=cfg.step_height_m,
+        max_slope_rad=math.radians(cfg.max_slope_deg),
+        window_cells=cfg.window_cells,
+        max_error_m=cfg.max_depth_error_m,
+    )
+    submaps = SubmapParams(
+        point_resolution_m=cfg.point_resolution_m,
+        voxel_resolution_m=cfg.voxel_resolution_m,
+        max_depth_error_m=cfg.max_depth_error_m,
+        max_position_std_m=cfg.submap_position_std_m,
+        max_distance_m=cfg.submap_distance_m,
+    )
+    return LocalMapper(robot, calib, obstacles, submaps)
 
 
 def calibration(rig: StereoRig) -> StereoCalibration:
@@ -100,13 +125,18 @@ class OnboardStack:
         if rig_name not in rigs:
             raise ValueError(f"slam.vo_rig {rig_name!r} is not a stereo rig of {robot.name}; rigs: {sorted(rigs)}")
         self.vo_rig = rigs[rig_name]
+        mapping = cfg.mapping
         self.estimator = LocalEstimator(
             filter_params(imu_spec, gravity),
             StereoVO(calibration(self.vo_rig)),
             init_time=robot.cfg.route.start_delay_s,
             rest_window=cfg.initial_rest_s,
-            frame_switch_distance=cfg.frame_switch_distance_m,
+            frame_switch_distance=None if mapping.enabled else cfg.frame_switch_distance_m,
         )
+        self.mapper = local_mapper(robot.name, calibration(self.vo_rig), mapping) if mapping.enabled else None
+        self.partitions: list[tuple[float, str]] = []  # (t, reason) of each new submap
+        self._depth: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (depth, left image) until its VO is applied
+        self._switch_pending = False
         self.log = EstimateLog()
         self.on_vo_result = None  # optional callback(result), e.g. the recording
         self._T_first_frame = np.eye(4)
@@ -144,6 +174,8 @@ class OnboardStack:
         )
         if job is None:
             self.lane.submit("filter_update", work=lambda: self.estimator.abandon(frame_id))
+        elif self.mapper is not None:
+            self._depth[frame_id] = (depth, left)
 
     def stereo_dropped(self, frame_id: int) -> None:
         self.lane.submit("filter_update", work=lambda: self.estimator.abandon(frame_id))
@@ -151,7 +183,38 @@ class OnboardStack:
     def _vo_done(self, result: VoResult) -> None:
         if self.on_vo_result is not None:
             self.on_vo_result(result)
-        self.lane.submit("filter_update", work=lambda: self.estimator.on_vo(result))
+        self.lane.submit("filter_update", work=lambda: self._apply_vo(result))
+
+    def _apply_vo(self, result: VoResult) -> None:
+        est = self.estimator
+        est.on_vo(result)
+        images = self._depth.pop(result.frame_id, None)
+        frame = est.last_frame
+        if images is None or frame is None or frame.frame_id != result.frame_id:
+            return
+        if self.robot.cfg.is_aerial and (est.T_first_current @ est.in_frame(frame.T_local_body, frame.frame_index))[2, 3] < AERIAL_MAPPING_HEIGHT_M:
+            return  # on the ground or taking off: the downward stereo sees the ground closer than it can match
+        self.lane.submit("mapping", work=lambda: self._map(frame, *images), on_done=lambda _, t_done: self._check_partition(t_done))
+
+    def _map(self, frame: FramePose, depth: np.ndarray, left: np.ndarray) -> None:
+        """Classify and integrate one depth image along the filter's pose of its frame,
+        expressed in the current local frame (a switch may have happened since)."""
+        est = self.estimator
+        T_local_body = est.in_frame(frame.T_local_body, frame.frame_index)
+        self.mapper.integrate(frame.t, depth, left, T_local_body, frame.T_body_cam, est.T_first_current)
+
+    def _check_partition(self, now: float) -> None:
+        est = self.estimator
+        reason = None if self._switch_pending else self.mapper.partition_due(est.position_std(), est.distance_in_frame)
+        if reason is not None and self.lane.submit("filter_update", work=lambda: self._new_submap(now, reason)) is not None:
+            self._switch_pending = True
+
+    def _new_submap(self, now: float, reason: str) -> None:
+        """Thesis 5.1.3: a new submap, and with it a frame switch of the filter."""
+        switch = self.estimator.frame_switch()
+        self.mapper.start_submap(now, switch.frame_index)
+        self.partitions.append((now, reason))
+        self._switch_pending = False
 
     # ------------------------------------------------------------------ logging
 

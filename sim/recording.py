@@ -2,8 +2,9 @@
 
 Entity layout: ``world/terrain`` (mesh coloured by the albedo), ``world/rocks``,
 ``world/lander``, ``world/robots/<name>`` (ground-truth pose over ``sim_time``),
-``world/trajectories/<name>`` and ``cameras/<name>/<rig>/{left,depth}``
-(downsampled images). Open it with ``rerun results/<run>/recording.rrd``.
+``world/trajectories/<name>``, ``world/filter/<name>``, ``world/maps/<name>/...``
+(global map by submap, obstacles, submap origins, rolling obstacle map) and
+``cameras/<name>/<rig>/{left,depth}`` (downsampled images). Open it with ``rerun results/<run>/recording.rrd``.
 """
 
 from __future__ import annotations
@@ -102,6 +103,22 @@ class Recorder:
                 indexes=[rr.TimeColumn(TIMELINE, duration=times)],
                 columns=rr.Scalars.columns(scalars=values),
             )
+
+    def log_map(self, robot: str, robot_number: int, points: np.ndarray, submap: np.ndarray, obstacle: np.ndarray,
+                origins: np.ndarray, rolling_cells: np.ndarray) -> None:
+        """A robot's global map in the world frame (via its true start frame): points
+        coloured by submap (one hue per robot, shades per submap), obstacle points red,
+        submap origins, and the cells of its rolling obstacle map at the end of the run."""
+        hue = (0.6 + 0.31 * robot_number) % 1.0
+        shade = 0.45 + 0.5 * ((submap * 0.37) % 1.0)
+        hsv = np.stack([np.full(len(points), hue * 180), np.full(len(points), 200.0), 255 * shade], axis=1).astype(np.uint8)
+        colors = cv2.cvtColor(hsv[None], cv2.COLOR_HSV2RGB)[0]
+        base = f"world/maps/{robot}"
+        self.rec.log(f"{base}/points", rr.Points3D(points[~obstacle], colors=colors[~obstacle], radii=0.02), static=True)
+        self.rec.log(f"{base}/obstacles", rr.Points3D(points[obstacle], colors=[[230, 40, 40]], radii=0.025), static=True)
+        self.rec.log(f"{base}/submap_origins", rr.Points3D(origins, colors=[[255, 170, 0]], radii=0.08), static=True)
+        if len(rolling_cells):
+            self.rec.log(f"{base}/obstacle_map", rr.Points3D(rolling_cells, colors=[[255, 0, 255]], radii=0.03), static=True)
 
     def log_link_event(self, event) -> None:
         """A link going up or down (``comms.LinkEvent``), as a 0/1 series per direction."""

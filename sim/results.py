@@ -12,6 +12,7 @@
     comms_links.csv             per link: wire bytes, retransmissions, up fraction, queue occupancy
     routes.csv                  every waypoint of every robot with its outcome
     topdown.png                 terrain, rocks, lander, trajectories and waypoint outcomes
+    maps/, map_topdown.png      each robot's global map and its top-down view (see sim.map_results)
     recording.rrd               rerun recording (see sim.recording)
     error.txt                   only when the run failed: the traceback
 
@@ -33,7 +34,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import LightSource
 
-from sim import evaluation
+from sim import evaluation, map_results
 from sim.runner import Run
 from sim.scenario import Scenario, dump_scenario
 
@@ -77,6 +78,14 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
                 filter_section = {"status": f"evaluation failed: {type(exc).__name__}: {exc}"}
                 with (out / "error.txt").open("a") as f:
                     f.write(f"filter evaluation of {name} failed:\n{traceback.format_exc()}\n")
+        map_metrics = None
+        if runtime.onboard is not None:
+            try:
+                map_metrics = map_results.map_section(out, name, log, runtime.onboard, run.terrain, recorder, list(run.robots).index(name))
+            except Exception as exc:  # as above: the map's evaluation must not cost the other results
+                map_metrics = {"status": f"map evaluation failed: {type(exc).__name__}: {exc}"}
+                with (out / "error.txt").open("a") as f:
+                    f.write(f"map evaluation of {name} failed:\n{traceback.format_exc()}\n")
         robots_metrics[name] = {
             "preset": robot.cfg.preset,
             "final_status": robot.status,
@@ -85,6 +94,7 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
             "camera_frames": log.frames,
             "stereo": stereo,
             "filter": filter_section,
+            "map": map_metrics,
             "lane": {
                 "utilization": runtime.lane.utilization(run.sim_time),
                 "stages": {row["stage"]: {k: v for k, v in row.items() if k not in ("robot", "stage")} for row in stages},
@@ -110,7 +120,12 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
         plot_topdown(run, out / "topdown.png")
         if any(m.get("filter") for m in robots_metrics.values()):
             plot_filter_errors(robots_metrics, out / "filter_error.png")
+        maps = {name: m["map"] for name, m in robots_metrics.items() if m.get("map")}
+        paths = {name: np.stack(r.log.gt_pose)[:, :3] for name, r in run.robots.items() if r.log.gt_pose}
+        map_results.plot_maps(maps, paths, run.terrain, out / "map_topdown.png")
     for m in robots_metrics.values():  # series went into the plot; keep metrics.json scalar-sized
+        if m.get("map"):
+            m["map"].pop("_plot", None)
         if m.get("filter"):
             m["filter"].pop("error_over_time", None)
             m["filter"]["nees_roll_pitch_velocity"].pop("series", None)

@@ -260,6 +260,9 @@ class StageCosts(StrictModel):
     )
     strapdown_s: NonNegFloat = Field(1e-5, description="strapdown step per IMU sample (thesis 8.4: < 0.01 ms)")
     filter_update_s: NonNegFloat = Field(2e-4, description="Kalman update: VO delta, wheel odometry (thesis 8.4: 0.2 ms mean)")
+    mapping_s: NonNegFloat = Field(
+        0.01, description="obstacle classification and submap integration of one depth image (thesis 8.4: 0.01 s mean integration)"
+    )
 
 
 class ComputeConfig(StrictModel):
@@ -276,6 +279,22 @@ class OutputConfig(StrictModel):
     topdown_png: bool = True
 
 
+class MappingConfig(StrictModel):
+    """Obstacle classification and submaps (thesis ch. 5); a new submap switches the filter's frame."""
+
+    enabled: bool = True
+    submap_position_std_m: PositiveFloat = Field(
+        0.15, description="new submap when the filter's position std exceeds this (thesis 5.1.3: 0.1-0.2 m)"
+    )
+    submap_distance_m: PositiveFloat = Field(5.0, description="new submap after this distance in the current one (thesis: 3.5 or 7 m)")
+    point_resolution_m: PositiveFloat = Field(0.05, description="submap point cloud voxel filter (thesis 5.1.2)")
+    voxel_resolution_m: PositiveFloat = Field(0.1, description="submap occupancy voxels (thesis 5.1.2)")
+    max_depth_error_m: PositiveFloat = Field(0.15, description="points whose depth error (eq. 5.2c) exceeds this are dropped")
+    step_height_m: PositiveFloat = Field(0.15, description="h_max: highest step the robot drives over (thesis 5.1.1)")
+    max_slope_deg: float = Field(20.0, gt=0, lt=90, description="steepest traversable slope, for negative edges (eq. 5.1)")
+    window_cells: int = Field(5, ge=3, le=6, description="h_diff window of the 2.5D height map, 0.05 m cells (thesis 5.1.1)")
+
+
 class SlamConfig(StrictModel):
     """The on-board estimation stack of every robot (thesis ch. 4)."""
 
@@ -288,8 +307,9 @@ class SlamConfig(StrictModel):
     wheel_yaw_rate_std_rps: PositiveFloat = Field(0.03, description="yaw-rate noise the filter assumes for wheel odometry")
     wheel_vz_std_mps: PositiveFloat = Field(0.05, description="std of the rover's v_z = 0 pseudo-measurement")
     frame_switch_distance_m: PositiveFloat = Field(
-        5.0, description="frame switch after this distance driven in the current frame (the submap partition, thesis 5.1.3)"
+        5.0, description="without mapping only: frame switch after this distance driven in the current frame"
     )
+    mapping: MappingConfig = MappingConfig()
     initial_rest_s: PositiveFloat = Field(
         0.5,
         description="roll and pitch initialised from the mean accelerometer reading over this long before the route starts",

@@ -33,6 +33,18 @@ class FrameSwitch:
     cov_xyz_yaw: np.ndarray
 
 
+@dataclass(frozen=True)
+class FramePose:
+    """The filter's pose of a captured frame once its VO result was applied: the frame's
+    clone in local frame ``frame_index`` (what the mapping integrates the depth along)."""
+
+    frame_id: int
+    t: float
+    frame_index: int
+    T_local_body: np.ndarray
+    T_body_cam: np.ndarray
+
+
 @dataclass
 class VoStats:
     frames: int = 0
@@ -79,6 +91,8 @@ class LocalEstimator:
         self._distance = 0.0
         self._last_p: np.ndarray | None = None
         self._propagated = False  # updates need one IMU sample after the start
+        self.last_frame: FramePose | None = None  # set by on_vo
+        self.T_first_current = np.eye(4)  # the current local frame in the first one (switches chained)
 
     @property
     def initialised(self) -> bool:
@@ -166,6 +180,10 @@ class LocalEstimator:
                     stats.applied += 1
         else:
             stats.failures[str(result.reason)] = stats.failures.get(str(result.reason), 0) + 1
+        if result.frame_id in self.filter.clone_ids:
+            self.last_frame = FramePose(
+                result.frame_id, result.t, self.filter.frame_index, self.filter.clone_pose(result.frame_id), self._T_body_cam[result.frame_id]
+            )
         self._keyframes = tuple(result.keyframe_history)
         self._pending.discard(result.frame_id)
         self._release_clones()
@@ -187,11 +205,30 @@ class LocalEstimator:
         if frame_id in self.filter.clone_ids:
             self.filter.drop_clone(frame_id)
 
+    @property
+    def distance_in_frame(self) -> float:
+        """Distance travelled (filter estimate) since the current local frame started."""
+        return self._distance
+
+    def position_std(self) -> float:
+        """Largest standard deviation of the position in the current local frame (thesis 5.1.3)."""
+        return float(np.sqrt(np.linalg.eigvalsh(self.filter.covariance()[:3, :3])[-1]))
+
+    def in_frame(self, T: np.ndarray, frame_index: int) -> np.ndarray:
+        """A pose given in local frame ``frame_index`` expressed in the current local frame."""
+        current = self.filter.frame_index
+        if frame_index > current:
+            raise EstimatorException(f"frame {frame_index} is newer than the current frame {current}")
+        for switch in self.switches[len(self.switches) - (current - frame_index) :]:
+            T = np.linalg.inv(switch.T_old_new) @ T
+        return T
+
     def frame_switch(self) -> FrameSwitch:
         """Switch to a new local frame at the current x, y, z and yaw (thesis 4.1.2)."""
         if self.filter is None:
             raise EstimatorException("frame switch before the filter started")
         T_old_new, cov = self.filter.frame_switch()
+        self.T_first_current = self.T_first_current @ T_old_new
         switch = FrameSwitch(self.filter.t, self.filter.frame_index, T_old_new, cov)
         self.switches.append(switch)
         self._distance = 0.0

@@ -1,0 +1,173 @@
+"""Map quality against the simulator's true geometry (issue 5 §5; the thesis had no
+ground-truth maps, so these metrics are ours).
+
+The true surface is the triangulated heightfield (exact, ``Terrain.height_at``) plus the
+rock hulls, sampled densely; the lander's footprint is left out of both (its geometry is
+a handful of MJCF primitives that the metrics would need to sample separately), and map
+points inside it are counted, not scored. Other robots are not part of the true static
+surface: map points on them count as errors, as they would for a map user.
+
+- **accuracy**: distance from every map point to the nearest true-surface sample (median,
+  p95, share within 0.1 m); the sample spacing bounds the distance's overestimate by
+  ``spacing / sqrt(2)``;
+- **completeness**: share of the true surface within the explored area that has a map
+  point within ``completeness_radius_m``; the explored area is the set of
+  ``explored_cell_m`` cells holding at least one map point;
+- **obstacles**: the true obstacle cells are those of a 2.5D height map of the true
+  surface (top of terrain or rock) whose window height difference exceeds the robot's
+  step height, the same rule as the classification (thesis 5.1.1) without stereo error;
+  precision and recall of the map's obstacle points' cells against them within the
+  explored area, with one cell of tolerance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import binary_dilation, maximum_filter, minimum_filter
+from scipy.spatial import ConvexHull, cKDTree
+
+from sim.terrain import LANDER_RADIUS, Terrain
+
+
+@dataclass(frozen=True)
+class MapQualityParams:
+    surface_spacing_m: float = 0.02
+    completeness_radius_m: float = 0.1
+    explored_cell_m: float = 0.5
+    obstacle_cell_m: float = 0.05
+    obstacle_window_cells: int = 5
+    step_height_m: float = 0.15
+    lander_margin_m: float = 0.2
+
+
+class MapEvaluationError(ValueError):
+    """A map that cannot be scored (no points, points off the terrain)."""
+
+
+def _rock_surface(terrain: Terrain, spacing: float) -> np.ndarray:
+    """Points on the rock hulls' faces above the ground, about ``spacing`` apart (world frame)."""
+    out = []
+    for rock in terrain.rocks:
+        hull = ConvexHull(rock.vertices)
+        c, s = math.cos(rock.yaw), math.sin(rock.yaw)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        for tri in hull.simplices:
+            a, b, d = rock.vertices[tri]
+            n = max(1, math.ceil(max(np.linalg.norm(b - a), np.linalg.norm(d - a)) / spacing))
+            u, v = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+            keep = u + v <= n
+            u, v = u[keep] / n, v[keep] / n
+            pts = a + u[:, None] * (b - a) + v[:, None] * (d - a)
+            out.append(pts @ R.T + rock.center)
+    if not out:
+        return np.zeros((0, 3))
+    pts = np.concatenate(out)
+    return pts[pts[:, 2] >= terrain.height_at(pts[:, 0], pts[:, 1]) - 1e-3]  # the buried part is not surface
+
+
+def _cell_keys(xy: np.ndarray, cell: float) -> np.ndarray:
+    """One int64 per ``floor(xy / cell)`` cell (both indices within +-2^31)."""
+    c = np.floor(xy / cell).astype(np.int64)
+    return (c[:, 0] << 32) + (c[:, 1] + (1 << 31))
+
+
+def _outside_lander(terrain: Terrain, xy: np.ndarray, margin: float) -> np.ndarray:
+    if terrain.lander is None:
+        return np.ones(len(xy), bool)
+    return np.hypot(*(xy - np.asarray(terrain.lander.xy)).T) > LANDER_RADIUS + margin
+
+
+class SurfaceTruth:
+    """Dense samples of the true static surface within ``bounds`` ((x0, y0), (x1, y1))."""
+
+    def __init__(self, terrain: Terrain, bounds: tuple[tuple[float, float], tuple[float, float]], params: MapQualityParams):
+        (x0, y0), (x1, y1) = bounds
+        half = terrain.size_m / 2
+        x0, y0, x1, y1 = max(x0, -half), max(y0, -half), min(x1, half), min(y1, half)
+        if not (x1 > x0 and y1 > y0):
+            raise MapEvaluationError(f"map bounds {bounds} do not overlap the {terrain.size_m} m terrain")
+        sp = params.surface_spacing_m
+        gx, gy = np.meshgrid(np.arange(x0, x1 + sp / 2, sp), np.arange(y0, y1 + sp / 2, sp), indexing="ij")
+        gx, gy = gx.ravel(), gy.ravel()
+        ground = np.column_stack([gx, gy, terrain.height_at(gx, gy)])
+        covered = terrain.surface_height_at(gx, gy) > ground[:, 2] + 1e-3  # under a rock: not visible
+        ground = ground[~covered]
+        rocks = _rock_surface(terrain, sp)
+        if len(rocks):
+            inside = (rocks[:, 0] >= x0) & (rocks[:, 0] <= x1) & (rocks[:, 1] >= y0) & (rocks[:, 1] <= y1)
+            rocks = rocks[inside]
+        pts = np.concatenate([ground, rocks])
+        self.points = pts[_outside_lander(terrain, pts[:, :2], params.lander_margin_m)]
+        self.tree = cKDTree(self.points)
+
+
+def true_obstacle_cells(terrain: Terrain, origin: np.ndarray, shape: tuple[int, int], params: MapQualityParams) -> np.ndarray:
+    """Bool (nx, ny) grid of cells ``origin + (i, j)`` (lattice ``floor(xy / cell)``) whose
+    window height difference on the true surface exceeds the step height; the lander's
+    footprint is an obstacle."""
+    cell = params.obstacle_cell_m
+    i = (origin[0] + np.arange(shape[0]) + 0.5) * cell
+    j = (origin[1] + np.arange(shape[1]) + 0.5) * cell
+    cx, cy = np.meshgrid(i, j, indexing="ij")
+    h = terrain.surface_height_at(cx.ravel(), cy.ravel()).reshape(shape)
+    k = params.obstacle_window_cells
+    obstacles = maximum_filter(h, size=k, mode="nearest") - minimum_filter(h, size=k, mode="nearest") > params.step_height_m
+    lander = ~_outside_lander(terrain, np.column_stack([cx.ravel(), cy.ravel()]), 0.0).reshape(shape)
+    return obstacles | lander
+
+
+def map_quality(points_world: np.ndarray, obstacle: np.ndarray, terrain: Terrain, params: MapQualityParams | None = None) -> dict:
+    """Accuracy, completeness and obstacle precision/recall of a map (points in the world
+    frame, (n, 3), with their obstacle flags) against the terrain it was built on."""
+    params = params or MapQualityParams()
+    pts = np.asarray(points_world, float)
+    obstacle = np.asarray(obstacle, bool)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or obstacle.shape != (len(pts),):
+        raise MapEvaluationError(f"need (n, 3) points with n >= 1 and (n,) obstacle flags, got {pts.shape} and {obstacle.shape}")
+    scored = _outside_lander(terrain, pts[:, :2], params.lander_margin_m)
+    if not scored.any():
+        raise MapEvaluationError("every map point lies on the lander")
+    lo, hi = pts[:, :2].min(axis=0) - 1.0, pts[:, :2].max(axis=0) + 1.0
+    truth = SurfaceTruth(terrain, ((lo[0], lo[1]), (hi[0], hi[1])), params)
+
+    dist, _ = truth.tree.query(pts[scored])
+    accuracy = {
+        "median_m": float(np.median(dist)),
+        "p95_m": float(np.percentile(dist, 95)),
+        "within_0_1_m": float(np.mean(dist <= 0.1)),
+        "points": int(scored.sum()),
+        "points_on_lander": int((~scored).sum()),
+    }
+
+    ec = params.explored_cell_m
+    explored = np.unique(_cell_keys(pts[:, :2], ec))
+    surface = truth.points[np.isin(_cell_keys(truth.points[:, :2], ec), explored)]
+    near, _ = cKDTree(pts).query(surface, distance_upper_bound=params.completeness_radius_m)
+    completeness = {
+        "share": float(np.mean(np.isfinite(near))) if len(surface) else 0.0,
+        "explored_area_m2": float(len(explored) * ec * ec),
+        "surface_samples": len(surface),
+    }
+
+    oc = params.obstacle_cell_m
+    cells = np.floor(pts[:, :2] / oc).astype(np.int64)
+    origin = cells.min(axis=0) - params.obstacle_window_cells
+    shape = tuple(int(v) for v in cells.max(axis=0) - origin + params.obstacle_window_cells + 1)
+    seen = np.zeros(shape, bool)
+    seen[tuple((cells - origin).T)] = True
+    mapped = np.zeros(shape, bool)
+    mapped[tuple((cells[obstacle] - origin).T)] = True
+    true = true_obstacle_cells(terrain, origin, shape, params) & seen
+    one = np.ones((3, 3), bool)
+    tp_precision = mapped & binary_dilation(true, one)
+    tp_recall = true & binary_dilation(mapped, one)
+    obstacles = {
+        "precision": float(tp_precision.sum() / mapped.sum()) if mapped.any() else None,
+        "recall": float(tp_recall.sum() / true.sum()) if true.any() else None,
+        "mapped_cells": int(mapped.sum()),
+        "true_cells_seen": int(true.sum()),
+    }
+    return {"accuracy": accuracy, "completeness": completeness, "obstacles": obstacles}

@@ -1,0 +1,153 @@
+"""Each robot's map in the results folder (issue 5 §5, §6).
+
+::
+
+    maps/<robot>.ply            global point cloud of the robot's submaps (binary PLY, map frame):
+                                x y z, grey intensity, obstacle flag, submap index
+    maps/<robot>.voxels         merged log-odds voxel grid (``slam.voxels.VoxelGrid.to_bytes``)
+    maps/<robot>.occupied.ply   centres of its occupied voxels (map frame)
+    map_topdown.png             per robot: map points by height, obstacles, submap origins, true path
+
+The map frame is the robot's first local frame (gravity-aligned start pose); without
+the graph (issue 6) the submaps are placed by chaining the filter's frame switches.
+``metrics.json`` gets ``robots.<name>.map``: submap count, sizes and partition reasons,
+map size, ``T_world_map`` (from the true start pose, for evaluation only) and the map
+quality of :mod:`sim.map_evaluation` in the world frame.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim import evaluation
+from sim.map_evaluation import map_quality
+from sim.terrain import Terrain
+from slam.globalmap import GlobalMap
+
+
+def submap_poses(switches) -> list[np.ndarray]:
+    """``T_map_frame`` of every local frame: frame 0 is the map frame, frame k the k-th switch chained."""
+    poses = [np.eye(4)]
+    for switch in switches:
+        poses.append(poses[-1] @ switch.T_old_new)
+    return poses
+
+
+def compose(onboard) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any]:
+    """The robot's global map from its finished submaps and its active one: poses by
+    frame index, points, obstacle flags, intensities, submap labels and the voxel grid."""
+    mapper = onboard.mapper
+    frames = submap_poses(onboard.estimator.switches)
+    cfg = onboard.slam_cfg.mapping
+    gmap = GlobalMap(point_resolution_m=cfg.point_resolution_m, voxel_resolution_m=cfg.voxel_resolution_m)
+    poses = {}
+    for submap in mapper.submaps:
+        gmap.set_submap(submap)
+        poses[submap.key] = frames[submap.frame_index]
+    active = mapper.builder.current()
+    current = (active, frames[active.frame_index]) if active.images else None
+    points, obstacle, intensity, labels = gmap.compose(poses, current=current)
+    voxels = gmap.voxel_grid(poses, current=current)
+    return poses, points, obstacle, intensity, labels, voxels
+
+
+def map_section(out: Path, name: str, log, onboard, terrain: Terrain, recorder=None, robot_number: int = 0) -> dict[str, Any]:
+    """Write the robot's map files (and into the recording, if given) and return its ``map`` metrics."""
+    mapper = onboard.mapper
+    est = onboard.log
+    if mapper is None or not est.t:
+        return {"status": "no mapping" if mapper is None else "not started"}
+    poses, points, obstacle, intensity, labels, voxels = compose(onboard)
+    sizes = [s.size_bytes for s in mapper.submaps]
+    reasons = [r for _, r in onboard.partitions]
+    section: dict[str, Any] = {
+        "status": "ok",
+        "submaps": len(mapper.submaps) + (1 if mapper.builder.images else 0),
+        "finished_submaps": len(mapper.submaps),
+        "partitions": {str(r): reasons.count(r) for r in sorted(set(reasons))},
+        "submap_bytes": {"mean": float(np.mean(sizes)), "max": int(max(sizes))} if sizes else None,
+        "images_integrated": mapper.images,
+        "points": len(points),
+        "obstacle_points": int(obstacle.sum()),
+        "voxels": len(voxels),
+        "occupied_voxels": len(voxels.occupied_centers()),
+    }
+    maps = out / "maps"
+    maps.mkdir(parents=True, exist_ok=True)
+    write_ply(maps / f"{name}.ply", points, {"intensity": intensity, "obstacle": obstacle.astype(np.uint8), "submap": labels[:, 1].astype(np.uint16)})
+    (maps / f"{name}.voxels").write_bytes(voxels.to_bytes())
+    write_ply(maps / f"{name}.occupied.ply", voxels.occupied_centers(), {})
+    if len(points) == 0:
+        section["quality"] = None
+        return section
+    gt_t = np.asarray(log.gt_t)
+    first = int(np.searchsorted(gt_t, est.t[0] - 1e-9))
+    T_world_map = evaluation.gravity_aligned(evaluation.pose_matrix(log.gt_pose[first]))
+    section["T_world_map"] = T_world_map.tolist()
+    world = points @ T_world_map[:3, :3].T + T_world_map[:3, 3]
+    section["quality"] = map_quality(world, obstacle, terrain)
+    origins = np.array([T_world_map @ T for T in poses.values()]).reshape(-1, 4, 4)[:, :3, 3]
+    section["_plot"] = (world, obstacle, origins)  # for the plot; dropped before metrics.json
+    if recorder is not None:
+        # the rolling obstacle map lives in the odometry frame (= the map frame) and has no
+        # heights: its cells are drawn at the robot's final height
+        rolling = onboard.mapper.rolling
+        cells = rolling.cell_centers()[rolling.obstacles]
+        cells_world = np.column_stack([cells, np.zeros(len(cells))]) @ T_world_map[:3, :3].T + T_world_map[:3, 3]
+        cells_world[:, 2] = (T_world_map @ onboard.estimator.T_first_current @ onboard.estimator.filter.pose())[2, 3]
+        recorder.log_map(name, robot_number, world, labels[:, 1], obstacle, origins, cells_world)
+    return section
+
+
+_PLY_TYPES = {np.dtype(np.float32): "float", np.dtype(np.uint8): "uchar", np.dtype(np.uint16): "ushort"}
+
+
+def write_ply(path: Path, points: np.ndarray, fields: dict[str, np.ndarray]) -> None:
+    """Binary little-endian PLY of float32 points with extra per-point properties."""
+    points = np.asarray(points, dtype=np.float32)
+    columns = [("x", points[:, 0]), ("y", points[:, 1]), ("z", points[:, 2])] + [(k, np.asarray(v)) for k, v in fields.items()]
+    dtype = np.dtype([(k, v.dtype.newbyteorder("<")) for k, v in columns])
+    rows = np.empty(len(points), dtype=dtype)
+    for k, v in columns:
+        rows[k] = v
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += [f"property {_PLY_TYPES[v.dtype]} {k}" for k, v in columns]
+    header.append("end_header\n")
+    path.write_bytes("\n".join(header).encode() + rows.tobytes())
+
+
+def plot_maps(maps: dict[str, dict], trajectories: dict[str, np.ndarray], terrain: Terrain, path: Path) -> None:
+    """Top-down view of every robot's map in the world frame: points by height, obstacles red."""
+    import matplotlib.pyplot as plt
+
+    robots = [name for name, m in maps.items() if "_plot" in m]
+    if not robots:
+        return
+    fig, axes = plt.subplots(1, len(robots), figsize=(6 * len(robots), 5.5), squeeze=False)
+    half = terrain.size_m / 2
+    for ax, name in zip(axes[0], robots):
+        world, obstacle, origins = maps[name]["_plot"]
+        sc = ax.scatter(world[~obstacle, 0], world[~obstacle, 1], c=world[~obstacle, 2], s=0.5, cmap="viridis", rasterized=True)
+        ax.scatter(world[obstacle, 0], world[obstacle, 1], c="red", s=1.5, label="obstacle points", rasterized=True)
+        gt = trajectories[name]
+        ax.plot(gt[:, 0], gt[:, 1], "k-", lw=1, label="true path")
+        ax.plot(origins[:, 0], origins[:, 1], "^", color="orange", mec="k", ms=7, label="submap origins")
+        q = maps[name]["quality"]
+        ax.set_title(
+            f"{name}: {maps[name]['submaps']} submaps, accuracy median {100 * q['accuracy']['median_m']:.1f} cm, "
+            f"completeness {100 * q['completeness']['share']:.0f} %",
+            fontsize=9,
+        )
+        ax.set_xlim(-half, half)
+        ax.set_ylim(-half, half)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.legend(loc="upper right", fontsize=7, markerscale=3)
+        fig.colorbar(sc, ax=ax, label="height [m]", shrink=0.8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

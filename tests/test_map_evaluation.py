@@ -1,0 +1,61 @@
+"""sim.map_evaluation against maps made from the true geometry itself."""
+
+import numpy as np
+import pytest
+
+from sim.map_evaluation import MapEvaluationError, map_quality
+from sim.scenario import load_scenario
+from sim.seeding import RandomStreams
+from sim.terrain import generate_terrain
+
+
+@pytest.fixture(scope="module")
+def terrain():
+    scenario = load_scenario("scenarios/quickstart.yaml")
+    return generate_terrain(scenario.terrain, RandomStreams(scenario.seed).rng("terrain"), [])
+
+
+def true_surface_map(terrain, x0, y0, size, spacing=0.05):
+    x, y = np.meshgrid(np.arange(x0, x0 + size, spacing), np.arange(y0, y0 + size, spacing), indexing="ij")
+    x, y = x.ravel(), y.ravel()
+    return np.column_stack([x, y, terrain.surface_height_at(x, y)])
+
+
+def test_a_map_of_the_true_surface_is_accurate_and_complete(terrain):
+    pts = true_surface_map(terrain, -9.0, -5.0, 4.0)
+    q = map_quality(pts, np.zeros(len(pts), bool), terrain)
+    # the true surface is sampled every 2 cm: a perfect map scores within spacing / sqrt(2)
+    assert q["accuracy"]["p95_m"] < 0.015 and q["accuracy"]["within_0_1_m"] == 1.0
+    assert q["completeness"]["share"] > 0.99
+    assert q["completeness"]["explored_area_m2"] == pytest.approx(16.0)
+
+
+def test_a_lifted_or_partial_map_scores_what_is_wrong_with_it(terrain):
+    pts = true_surface_map(terrain, -9.0, -5.0, 4.0)
+    lifted = map_quality(pts + [0.0, 0.0, 0.3], np.zeros(len(pts), bool), terrain)
+    assert lifted["accuracy"]["median_m"] == pytest.approx(0.3, abs=0.02)
+    assert lifted["completeness"]["share"] < 0.05
+    sparse = true_surface_map(terrain, -9.0, -5.0, 4.0, spacing=0.35)  # a disc of 0.1 m per 0.35 m square: ~26 %
+    assert map_quality(sparse, np.zeros(len(sparse), bool), terrain)["completeness"]["share"] < 0.4
+
+
+def test_obstacle_precision_and_recall_around_a_rock(terrain):
+    rock = max(terrain.rocks, key=lambda r: r.radii[2])
+    x0, y0 = rock.center[:2] - 1.5
+    pts = true_surface_map(terrain, x0, y0, 3.0)
+    tall = pts[:, 2] > terrain.height_at(pts[:, 0], pts[:, 1]) + 0.05  # on the rock
+    right = map_quality(pts, tall, terrain)["obstacles"]
+    # true obstacles are the rock's steps (window height difference > 0.15 m), not its whole top
+    # or its low flanks, so flagging the rock is mostly but not entirely right
+    assert right["true_cells_seen"] > 0
+    assert right["recall"] > 0.5 and right["precision"] > 0.6, right
+    wrong = map_quality(pts, ~tall, terrain)["obstacles"]  # everything but the rock flagged
+    assert wrong["precision"] < 0.2, wrong
+
+
+def test_bad_maps_are_refused(terrain):
+    with pytest.raises(MapEvaluationError, match="points"):
+        map_quality(np.zeros((0, 3)), np.zeros(0, bool), terrain)
+    with pytest.raises(MapEvaluationError, match="lander"):
+        lander = np.array([[*terrain.lander.xy, 1.0]])
+        map_quality(lander, np.zeros(1, bool), terrain)
