@@ -189,6 +189,8 @@ class OnboardStack:
         est = self.estimator
         est.on_vo(result)
         images = self._depth.pop(result.frame_id, None)
+        for stale in [k for k in self._depth if k < result.frame_id]:  # their VO result was lost with a dropped job
+            del self._depth[stale]
         frame = est.last_frame
         if images is None or frame is None or frame.frame_id != result.frame_id:
             return

@@ -673,3 +673,23 @@ def test_determinism():
     np.testing.assert_array_equal(a.full_covariance(), b.full_covariance())
     np.testing.assert_array_equal(sw_a[0][0], sw_b[0][0])
     np.testing.assert_array_equal(sw_a[0][1], sw_b[0][1])
+
+
+def test_resting_accelerometer_observes_the_bias_along_gravity():
+    """|f| - g at rest is the accelerometer bias along gravity (rest_duration_s given):
+    the estimate recovers that component of a true bias, and only that one keeps a
+    small variance (the noise of the mean); across gravity the bias stays unknown."""
+    roll, pitch = 0.05, -0.1
+    b = np.array([0.02, -0.03, 0.04])
+    measured = resting_accel(roll, pitch) + b
+    f = LocalReferenceFilter(PARAMS, 0.0, accel_at_rest=measured, rest_duration_s=0.5)
+    u = measured / np.linalg.norm(measured)  # gravity direction in the body, as measured
+    assert f.accel_bias @ u == pytest.approx(b @ u, abs=1e-4)
+    Pb = f.covariance()[9:12, 9:12]
+    along = PARAMS.accel_noise_density**2 / 0.5 + PARAMS.accel_bias_random_walk**2 * 0.5
+    assert u @ Pb @ u == pytest.approx(along, rel=1e-6)
+    across = np.cross(u, [1.0, 0.0, 0.0])
+    across /= np.linalg.norm(across)
+    assert across @ Pb @ across == pytest.approx(PARAMS.initial_accel_bias_std**2, rel=1e-6)
+    with pytest.raises(FilterException, match="rest_duration_s"):
+        LocalReferenceFilter(PARAMS, 0.0, rest_duration_s=0.5)
