@@ -130,7 +130,8 @@ def plot_maps(maps: dict[str, dict], trajectories: dict[str, np.ndarray], terrai
     half = terrain.size_m / 2
     for ax, name in zip(axes[0], robots):
         world, obstacle, origins = maps[name]["_plot"]
-        sc = ax.scatter(world[~obstacle, 0], world[~obstacle, 1], c=world[~obstacle, 2], s=0.5, cmap="viridis", rasterized=True)
+        lo, hi = np.percentile(world[:, 2], [2, 98])  # robust colour range: points on other robots stand far above
+        sc = ax.scatter(world[~obstacle, 0], world[~obstacle, 1], c=world[~obstacle, 2], s=0.5, cmap="viridis", vmin=lo, vmax=hi, rasterized=True)
         ax.scatter(world[obstacle, 0], world[obstacle, 1], c="red", s=1.5, label="obstacle points", rasterized=True)
         gt = trajectories[name]
         ax.plot(gt[:, 0], gt[:, 1], "k-", lw=1, label="true path")
