@@ -114,7 +114,7 @@ def run(
         console.print(line)
     if error:
         err_console.print(f"[bold red]run failed[/]: {metrics['error']} (traceback in {out / 'error.txt'}; partial results kept)")
-    console.print(f"\nresults in [bold]{out}/[/]: metrics.json, topdown.png, trajectories/, stereo_depth_error.csv, lanes.csv")
+    console.print(f"\nresults in [bold]{out}/[/]: metrics.json, topdown.png, filter_error.png, map_topdown.png, maps/, trajectories/, lanes.csv")
     if recorder is not None:
         console.print(f"look at the run: open {out / 'topdown.png'}; replay it with `rerun {out / 'recording.rrd'}`")
     if error:
