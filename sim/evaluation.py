@@ -52,6 +52,16 @@ def in_start_frame(poses_world: np.ndarray) -> np.ndarray:
     return start_inv[None] @ poses_world
 
 
+def truth_since(gt_t, gt_pose_rows, t0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ground truth from its first sample at or after ``t0`` (a robot's filter start):
+    the times, the poses (N, 4, 4) in the gravity-aligned frame of that first pose (the
+    robot's start and map frame), and that frame in the world, ``T_world_start``."""
+    gt_t = np.asarray(gt_t, dtype=float)
+    first = int(np.searchsorted(gt_t, t0 - 1e-9))
+    poses = np.stack([pose_matrix(p) for p in gt_pose_rows[first:]])
+    return gt_t[first:], in_start_frame(poses), gravity_aligned(poses[0])
+
+
 def path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()) if len(poses) > 1 else 0.0
 

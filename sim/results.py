@@ -70,22 +70,13 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
         waypoints = [_waypoint_row(name, wp) for wp in robot.waypoints]
         route_rows += waypoints
         counts = {s: sum(w["status"] == s for w in waypoints) for s in ("reached", "failed", "pending")}
-        filter_section = None
+        filter_section = map_metrics = None
         if runtime.onboard is not None:
-            try:
-                filter_section = _filter_section(out, name, log, runtime.onboard, recorder)
-            except Exception as exc:  # an evaluation bug must not cost the run's other results
-                filter_section = {"status": f"evaluation failed: {type(exc).__name__}: {exc}"}
-                with (out / "error.txt").open("a") as f:
-                    f.write(f"filter evaluation of {name} failed:\n{traceback.format_exc()}\n")
-        map_metrics = None
-        if runtime.onboard is not None:
-            try:
-                map_metrics = map_results.map_section(out, name, log, runtime.onboard, run.terrain, recorder, list(run.robots).index(name))
-            except Exception as exc:  # as above: the map's evaluation must not cost the other results
-                map_metrics = {"status": f"map evaluation failed: {type(exc).__name__}: {exc}"}
-                with (out / "error.txt").open("a") as f:
-                    f.write(f"map evaluation of {name} failed:\n{traceback.format_exc()}\n")
+            filter_section = _guarded(out, f"filter evaluation of {name}", _filter_section, out, name, log, runtime.onboard, recorder)
+            map_metrics = _guarded(
+                out, f"map evaluation of {name}", map_results.map_section,
+                out, name, log, runtime.onboard, run.terrain, recorder, list(run.robots).index(name),
+            )
         robots_metrics[name] = {
             "preset": robot.cfg.preset,
             "final_status": robot.status,
@@ -128,9 +119,20 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
             m["map"].pop("_plot", None)
         if m.get("filter"):
             m["filter"].pop("error_over_time", None)
-            m["filter"]["nees_roll_pitch_velocity"].pop("series", None)
+            m["filter"].get("nees_roll_pitch_velocity", {}).pop("series", None)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
     return metrics
+
+
+def _guarded(out: Path, what: str, section, *args) -> dict[str, Any] | None:
+    """An evaluation section; if it raises, its status says so and the traceback goes to
+    error.txt: an evaluation bug must not cost the run's other results."""
+    try:
+        return section(*args)
+    except Exception as exc:
+        with (out / "error.txt").open("a") as f:
+            f.write(f"{what} failed:\n{traceback.format_exc()}\n")
+        return {"status": f"{what} failed: {type(exc).__name__}: {exc}"}
 
 
 def _filter_section(out: Path, name: str, log, onboard, recorder) -> dict[str, Any] | None:
@@ -138,19 +140,15 @@ def _filter_section(out: Path, name: str, log, onboard, recorder) -> dict[str, A
     est = onboard.log
     if len(est.t) < 2:
         return {"status": "not started", "poses": len(est.t)}
-    gt_t = np.asarray(log.gt_t)
-    gt = np.stack([evaluation.pose_matrix(p) for p in log.gt_pose])
-    first = int(np.searchsorted(gt_t, est.t[0] - 1e-9))  # the filter's first frame: its start pose
-    gt_start = evaluation.in_start_frame(gt[first:])
+    gt_t, gt_start, T_world_start = evaluation.truth_since(log.gt_t, log.gt_pose, est.t[0])  # the filter's first frame
     T_est = np.stack(est.pose_first_frame)
     if recorder is not None:
-        T_world_start = evaluation.gravity_aligned(gt[first])
         recorder.log_filter(name, np.asarray(est.t), T_world_start[None] @ T_est, np.stack(est.position_std))
-    _write_tum_matrices(out / "trajectories" / f"{name}.gt_start.tum", gt_t[first:], gt_start)
+    _write_tum_matrices(out / "trajectories" / f"{name}.gt_start.tum", gt_t, gt_start)
     _write_tum_matrices(out / "trajectories" / f"{name}.filter.tum", np.asarray(est.t), T_est)
     section: dict[str, Any] = {"status": "ok"}
     try:
-        section.update(evaluation.trajectory_metrics(np.asarray(est.t), T_est, gt_t[first:], gt_start))
+        section.update(evaluation.trajectory_metrics(np.asarray(est.t), T_est, gt_t, gt_start))
     except evaluation.EvaluationError as exc:
         section = {"status": f"not evaluated: {exc}"}
     section["nees_roll_pitch_velocity"] = evaluation.nees_report(

@@ -5,7 +5,7 @@ data. The default suite drives the first 40 s; ``make test-slow`` the whole 618 
 import numpy as np
 import pytest
 
-from sim.evaluation import in_start_frame, pose_matrix, trajectory_metrics
+from sim.evaluation import trajectory_metrics, truth_since
 from sim.runner import Run
 from sim.scenario import load_scenario
 
@@ -13,12 +13,11 @@ QUIET = ["output.recording=false", "output.topdown_png=false", "robots.*.camera.
 
 
 def drift(simulation: Run, robot: str) -> dict:
+    """The filter alone against truth, unaligned in the robot's start frame."""
     rt = simulation.robots[robot]
     est = rt.onboard.log
-    gt_t = np.asarray(rt.log.gt_t)
-    first = int(np.searchsorted(gt_t, est.t[0] - 1e-9))
-    gt = in_start_frame(np.stack([pose_matrix(p) for p in rt.log.gt_pose[first:]]))
-    return trajectory_metrics(np.asarray(est.t), np.stack(est.pose_first_frame), gt_t[first:], gt)
+    gt_t, gt, _ = truth_since(rt.log.gt_t, rt.log.gt_pose, est.t[0])
+    return trajectory_metrics(np.asarray(est.t), np.stack(est.pose_first_frame), gt_t, gt)
 
 
 def check(duration: float | None, min_distance: float) -> None:

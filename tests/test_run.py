@@ -80,15 +80,11 @@ def test_line_of_sight_is_cut_by_a_ridge_and_takes_the_link_down():
 
 def test_filter_drift_and_consistency_against_truth(quickstart):
     """Filter alone (IMU + VO, wheels on rovers), in the start frame, unaligned."""
-    from sim.evaluation import in_start_frame, pose_matrix, trajectory_metrics
+    from test_filter_etna import drift
 
     for robot in ("lru1", "ardea"):  # narrow-angle rover and the hexacopter
         rt = quickstart.robots[robot]
-        est = rt.onboard.log
-        gt_t = np.asarray(rt.log.gt_t)
-        first = int(np.searchsorted(gt_t, est.t[0] - 1e-9))
-        gt = in_start_frame(np.stack([pose_matrix(p) for p in rt.log.gt_pose[first:]]))
-        m = trajectory_metrics(np.asarray(est.t), np.stack(est.pose_first_frame), gt_t[first:], gt)
+        m = drift(quickstart, robot)
         assert m["distance_m"] > 2.0
         assert m["final_error_percent_of_distance"] < 2.0, (robot, m["final_error_m"], m["distance_m"])
         vo = rt.onboard.estimator.vo_stats
@@ -235,3 +231,25 @@ def test_submap_along_true_poses_matches_the_terrain(monkeypatch):
     seen = seen[np.all(np.isfinite(seen), axis=1)] @ T[:3, :3].T + T[:3, 3]
     states = submap.voxels.state(0.5 * (seen + T[:3, 3]))
     assert np.mean(states == VoxelState.FREE) > 0.95 and np.mean(states == VoxelState.OCCUPIED) < 0.01
+
+
+def test_a_failing_evaluation_costs_only_its_own_section(monkeypatch, tmp_path):
+    """A bug in one robot section's evaluation is reported there and in error.txt; the
+    other sections and files are still written."""
+    import copy
+    import json
+
+    from sim import map_results, results
+
+    def broken(*args):
+        raise RuntimeError("deliberately broken")
+
+    simulation = run(copy.deepcopy(SMALL))
+    monkeypatch.setattr(map_results, "map_section", broken)
+    results.write(simulation, tmp_path)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    for robot in ("rover", "copter"):
+        assert metrics["robots"][robot]["map"]["status"] == f"map evaluation of {robot} failed: RuntimeError: deliberately broken"
+        assert "failed" not in metrics["robots"][robot]["filter"]["status"]  # the filter's section is unaffected
+        assert (tmp_path / "trajectories" / f"{robot}.filter.tum").exists()
+    assert "deliberately broken" in (tmp_path / "error.txt").read_text()
