@@ -28,19 +28,11 @@ from sim.terrain import Terrain
 from slam.globalmap import GlobalMap
 
 
-def submap_poses(switches) -> list[np.ndarray]:
-    """``T_map_frame`` of every local frame: frame 0 is the map frame, frame k the k-th switch chained."""
-    poses = [np.eye(4)]
-    for switch in switches:
-        poses.append(poses[-1] @ switch.T_old_new)
-    return poses
-
-
 def compose(onboard) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any]:
     """The robot's global map from its finished submaps and its active one: poses by
     frame index, points, obstacle flags, intensities, submap labels and the voxel grid."""
     mapper = onboard.mapper
-    frames = submap_poses(onboard.estimator.switches)
+    frames = onboard.estimator.frame_origins  # T_map_frame of every local frame: submap origins
     cfg = onboard.slam_cfg.mapping
     gmap = GlobalMap(point_resolution_m=cfg.point_resolution_m, voxel_resolution_m=cfg.voxel_resolution_m)
     poses = {}
@@ -83,9 +75,7 @@ def map_section(out: Path, name: str, log, onboard, terrain: Terrain, recorder=N
     if len(points) == 0:
         section["quality"] = None
         return section
-    gt_t = np.asarray(log.gt_t)
-    first = int(np.searchsorted(gt_t, est.t[0] - 1e-9))
-    T_world_map = evaluation.gravity_aligned(evaluation.pose_matrix(log.gt_pose[first]))
+    _, _, T_world_map = evaluation.truth_since(log.gt_t, log.gt_pose, est.t[0])
     section["T_world_map"] = T_world_map.tolist()
     world = points @ T_world_map[:3, :3].T + T_world_map[:3, 3]
     section["quality"] = map_quality(world, obstacle, terrain)

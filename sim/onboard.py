@@ -27,7 +27,7 @@ from slam.filter import FilterParams
 from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
 from slam.obstacles import ObstacleParams
-from slam.stereo import StereoCalibration
+from slam.stereo import DEFAULT_MIN_DEPTH_M, StereoCalibration
 from slam.submap import SubmapParams
 from slam.vo import StereoVO, VoResult
 
@@ -38,9 +38,10 @@ MUJOCO_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 #: a robot that is not perfectly still (motors idling, a settling suspension).
 RESTING_TILT_STD = math.radians(0.2)
 #: An aerial robot maps only this high above its take-off point (filter estimate): its
-#: downward stereo matches from StereoMatcher's 0.5 m minimum depth, and closer ground
+#: downward stereo matches from the matcher's minimum depth on, and closer ground
 #: (standing, taking off, landing) gives SGBM mismatches that put points up to 2 m off.
-AERIAL_MAPPING_HEIGHT_M = 0.8
+#: The margin covers the camera's height on its legs and the terrain's relief below.
+AERIAL_MAPPING_HEIGHT_M = DEFAULT_MIN_DEPTH_M + 0.3
 
 
 def filter_params(spec: ImuSpec, gravity: float) -> FilterParams:
@@ -139,8 +140,6 @@ class OnboardStack:
         self._switch_pending = False
         self.log = EstimateLog()
         self.on_vo_result = None  # optional callback(result), e.g. the recording
-        self._T_first_frame = np.eye(4)
-        self._switches_chained = 0
 
     # ------------------------------------------------------------------ sensor events
 
@@ -226,12 +225,9 @@ class OnboardStack:
         if not est.initialised:
             return
         f = est.filter
-        while self._switches_chained < len(est.switches):
-            self._T_first_frame = self._T_first_frame @ est.switches[self._switches_chained].T_old_new
-            self._switches_chained += 1
         log = self.log
         log.t.append(now)
-        log.pose_first_frame.append(self._T_first_frame @ f.pose())
+        log.pose_first_frame.append(est.T_first_current @ f.pose())
         log.frame_index.append(f.frame_index)
         x, cov = f.observable_estimate()
         log.observable.append(x)

@@ -92,7 +92,7 @@ class LocalEstimator:
         self._last_p: np.ndarray | None = None
         self._propagated = False  # updates need one IMU sample after the start
         self.last_frame: FramePose | None = None  # set by on_vo
-        self.T_first_current = np.eye(4)  # the current local frame in the first one (switches chained)
+        self.frame_origins: list[np.ndarray] = [np.eye(4)]  # local frame k in the first one (switches chained)
 
     @property
     def initialised(self) -> bool:
@@ -206,6 +206,11 @@ class LocalEstimator:
             self.filter.drop_clone(frame_id)
 
     @property
+    def T_first_current(self) -> np.ndarray:
+        """The current local frame in the first one."""
+        return self.frame_origins[-1]
+
+    @property
     def distance_in_frame(self) -> float:
         """Distance travelled (filter estimate) since the current local frame started."""
         return self._distance
@@ -216,19 +221,16 @@ class LocalEstimator:
 
     def in_frame(self, T: np.ndarray, frame_index: int) -> np.ndarray:
         """A pose given in local frame ``frame_index`` expressed in the current local frame."""
-        current = self.filter.frame_index
-        if frame_index > current:
-            raise EstimatorException(f"frame {frame_index} is newer than the current frame {current}")
-        for switch in self.switches[len(self.switches) - (current - frame_index) :]:
-            T = np.linalg.inv(switch.T_old_new) @ T
-        return T
+        if not 0 <= frame_index < len(self.frame_origins):
+            raise EstimatorException(f"no local frame {frame_index}: frames 0..{len(self.frame_origins) - 1} exist")
+        return np.linalg.solve(self.frame_origins[-1], self.frame_origins[frame_index] @ T)
 
     def frame_switch(self) -> FrameSwitch:
         """Switch to a new local frame at the current x, y, z and yaw (thesis 4.1.2)."""
         if self.filter is None:
             raise EstimatorException("frame switch before the filter started")
         T_old_new, cov = self.filter.frame_switch()
-        self.T_first_current = self.T_first_current @ T_old_new
+        self.frame_origins.append(self.frame_origins[-1] @ T_old_new)
         switch = FrameSwitch(self.filter.t, self.filter.frame_index, T_old_new, cov)
         self.switches.append(switch)
         self._distance = 0.0

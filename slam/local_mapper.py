@@ -12,6 +12,7 @@ differences do not change under translation and yaw).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from slam.obstacles import Classification, ObstacleParams, RollingObstacleMap, classify_depth
@@ -35,7 +36,6 @@ class LocalMapper:
         self.builder = SubmapBuilder(robot, submap_params, calibration)
         self.rolling = RollingObstacleMap(obstacle_params.resolution_m, rolling_map_size_m)
         self.submaps: list[Submap] = []
-        self.images = 0
 
     def integrate(
         self, t: float, depth: np.ndarray, image: np.ndarray, T_local_body: np.ndarray, T_body_cam: np.ndarray, T_odom_local: np.ndarray
@@ -46,11 +46,15 @@ class LocalMapper:
         T_local_cam = T_local_body @ T_body_cam
         T_odom_cam = T_odom_local @ T_local_cam
         classification = classify_depth(depth, self.calibration, T_odom_cam, self.obstacle_params)
-        intensity = image if image.ndim == 2 else image.mean(axis=2).astype(np.uint8)
+        intensity = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         self.builder.integrate(depth, T_local_cam, classification.pixel_obstacles, intensity, t)
         self.rolling.update(classification.height_map, (T_odom_local @ T_local_body)[:2, 3])
-        self.images += 1
         return classification
+
+    @property
+    def images(self) -> int:
+        """Depth images integrated into all submaps so far."""
+        return sum(s.images for s in self.submaps) + self.builder.images
 
     def partition_due(self, position_std_m: float, distance_m: float) -> str | None:
         """Why a new submap must start now (thesis 5.1.3), or None."""

@@ -38,6 +38,7 @@ import numpy as np
 
 #: Pixel error of the thesis (5.1.1: calibration RMSE up to 0.46 px, 0.5 px assumed).
 DEFAULT_PIXEL_ERROR = 0.5
+DEFAULT_MIN_DEPTH_M = 0.5  # nearest depth StereoMatcher searches disparities for
 
 
 class StereoException(Exception):
@@ -108,7 +109,7 @@ class StereoMatcher:
         self,
         calibration: StereoCalibration,
         *,
-        min_depth_m: float = 0.5,
+        min_depth_m: float = DEFAULT_MIN_DEPTH_M,
         block_size: int = 5,
         uniqueness_ratio: int = 10,
         speckle_window_size: int = 100,
