@@ -276,10 +276,12 @@ class RandomOutageConfig(_Strict):
 # Kinds of thesis 3.3. The lead's slam messages use these names; any other kind gets
 # ``kind_defaults``. Poses are small and frequent: most urgent, and a stale one is
 # worth less than a fresh one. Loop closures and match attempts are small and must
-# not be lost (a pair is attempted once). Submaps (about 700 KB, thesis 8.4) are big.
+# not be lost (a pair is attempted once); so must frame switches (a lost one breaks a
+# robot's chain of submap origins in every other robot's graph). Submaps (about 700 KB, thesis 8.4) are big.
 BASE_KINDS: dict[str, dict[str, Any]] = {
     "pose": {"priority": 0, "delivery": "best_effort", "max_queued": 20, "when_full": "drop_oldest"},
     "detection": {"priority": 1, "delivery": "reliable"},
+    "frame_switch": {"priority": 1, "delivery": "reliable"},
     "loop_closure": {"priority": 1, "delivery": "reliable"},
     "match_attempt": {"priority": 1, "delivery": "reliable"},
     "submap": {"priority": 3, "delivery": "reliable", "max_queued": 200},

@@ -11,6 +11,7 @@ percentage of the distance driven; yaw error over time.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 from evo.core import metrics, sync
@@ -62,6 +63,15 @@ def truth_since(gt_t, gt_pose_rows, t0: float) -> tuple[np.ndarray, np.ndarray, 
     return gt_t[first:], in_start_frame(poses), gravity_aligned(poses[0])
 
 
+def write_tum(path: Path, times, poses: np.ndarray) -> None:
+    """(N, 4, 4) poses as a TUM file: ``t x y z qx qy qz qw`` per line."""
+    quats = Rotation.from_matrix(np.asarray(poses)[:, :3, :3]).as_quat()  # x, y, z, w
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w") as f:
+        for t, T, q in zip(times, poses, quats):
+            f.write(f"{t:.6f} {T[0, 3]:.6f} {T[1, 3]:.6f} {T[2, 3]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}\n")
+
+
 def path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()) if len(poses) > 1 else 0.0
 
@@ -110,7 +120,7 @@ def trajectory_metrics(
         out["rpe_per_m"] = {"status": f"not computed: only {distance:.2f} m travelled"}
     final = float(np.linalg.norm(ref.positions_xyz[-1] - est.positions_xyz[-1]))
     yaw_err = np.array(
-        [_wrap(yaw_of(e[:3, :3]) - yaw_of(r[:3, :3])) for r, e in zip(ref.poses_se3, est.poses_se3)]
+        [wrap(yaw_of(e[:3, :3]) - yaw_of(r[:3, :3])) for r, e in zip(ref.poses_se3, est.poses_se3)]
     )
     out["final_error_m"] = final
     out["final_error_percent_of_distance"] = 100.0 * final / distance if distance > 0 else None
@@ -123,7 +133,7 @@ def trajectory_metrics(
     return out
 
 
-def _wrap(angle: float) -> float:
+def wrap(angle: float) -> float:
     return (angle + math.pi) % (2 * math.pi) - math.pi
 
 

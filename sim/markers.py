@@ -5,8 +5,8 @@ with ``DICT_APRILTAG_36h11``), so what is rendered is exactly what ``cv2.aruco``
 detects (thesis 6.2.1). A marker is a thin box whose +z face carries the tag; the
 tag's printed size ``size_m`` is the edge of its black square (8 of the 10 cells of
 the texture; the outer cell is a white quiet zone), the convention of
-``cv2.aruco``/PnP. The geom frame is the marker frame: origin at the tag centre,
-z out of the face.
+``cv2.aruco``/PnP. ``MarkerSpec`` gives the marker frame: origin at the centre of the
+printed face, z out of it (the box geom sits half its thickness behind).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import mujoco
 import numpy as np
 from dm_control import mjcf
 
@@ -63,12 +64,14 @@ def add_marker(body: mjcf.Element, spec: MarkerSpec) -> mjcf.Element:
         root.asset.add("texture", name=texture_name, type="2d", file=_png_asset(apriltag_image(spec.tag_id)))
         root.asset.add("material", name=texture_name, texture=texture_name, specular=0.0, shininess=0.0)
     half = spec.size_m * (TAG_CELLS + 2 * QUIET_CELLS) / TAG_CELLS / 2
+    normal = np.zeros(3)
+    mujoco.mju_rotVecQuat(normal, np.array([0.0, 0.0, 1.0]), np.asarray(spec.quat, float))
     return body.add(
         "geom",
         name=spec.name,
         type="box",
         size=[half, half, MARKER_THICKNESS_M / 2],
-        pos=list(spec.pos),
+        pos=list(np.asarray(spec.pos) - normal * MARKER_THICKNESS_M / 2),
         quat=list(spec.quat),
         material=texture_name,
         contype=0,

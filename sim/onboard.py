@@ -1,4 +1,4 @@
-"""One robot's on-board estimation pipeline as lane jobs (design notes §2.4, issue 4 §3).
+"""One robot's on-board SLAM pipeline as lane jobs (design notes §2.4).
 
 Sensor data from the run loop become jobs on the robot's lane, in the order its
 computer would process them: every IMU sample a ``strapdown`` job, every wheel
@@ -7,7 +7,11 @@ stereo pair is matched on the FPGA (``stereo``), then the VO rig's depth goes to
 ``vo`` job on a core, whose delta pose is applied by a ``filter_update`` job when
 it is done: about 250 ms after capture with the default costs, so estimates appear
 when a robot would have them. Real code runs in every job; only its duration is
-modelled. What the filter believes is logged next to ground truth for evaluation.
+modelled. The robot's :class:`slam.agent.Agent` holds estimator, mapping and graph:
+marker detection runs on every camera image (``detection``), peer messages are
+decoded as ``messages`` jobs and the graph is optimised as a background ``graph`` job
+whenever factors arrived; what the agent sends goes onto the network. What the filter
+and the graph believe is logged next to ground truth for evaluation.
 """
 
 from __future__ import annotations
@@ -18,14 +22,18 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from comms import Delivery, Network
 from sim.camera_rig import StereoRig
-from sim.lanes import Lane
+from sim.lanes import Lane, Priority
 from sim.robots.base import Robot
-from sim.scenario import MappingConfig, Scenario
+from sim.scenario import MappingConfig, Scenario, SlamConfig
 from sim.sensors import ImuSpec
+from slam.agent import Agent, AgentParams, Outgoing, TeamMarker
 from slam.filter import FilterParams
+from slam.graph import GraphParams, Topology
 from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
+from slam.markers import UncertaintyModel
 from slam.obstacles import ObstacleParams
 from slam.stereo import DEFAULT_MIN_DEPTH_M, StereoCalibration
 from slam.submap import SubmapParams
@@ -80,6 +88,21 @@ def local_mapper(robot: str, calib: StereoCalibration, cfg: MappingConfig) -> Lo
     return LocalMapper(robot, calib, obstacles, submaps)
 
 
+def agent_params(cfg: SlamConfig) -> AgentParams:
+    """The agent's parameters from the scenario's ``slam`` section."""
+    g, d = cfg.graph, cfg.detections
+    return AgentParams(
+        graph=GraphParams(topology=Topology(g.topology), cauchy_c=g.cauchy_c),
+        uncertainty=UncertaintyModel(d.uncertainty),
+        detection_interval_s=d.min_interval_s,
+        max_detection_distance_m=d.max_distance_m,
+        max_ambiguity=d.max_ambiguity,
+        pose_period_s=g.pose_period_s,
+        buffer_horizon_s=g.pose_buffer_s,
+        covariance_period_s=g.covariance_period_s,
+    )
+
+
 def calibration(rig: StereoRig) -> StereoCalibration:
     return StereoCalibration.from_intrinsics(rig.intrinsics, rig.baseline_m, rig.width, rig.height)
 
@@ -112,10 +135,22 @@ class EstimateLog:
     bias_true: list[np.ndarray] = field(default_factory=list)
 
 
+@dataclass
+class SlamLog:
+    """The graph's online estimates (thesis ch. 8: what the robot believed at each moment,
+    never re-optimised afterwards), sampled on the ground-truth clock."""
+
+    t: list[float] = field(default_factory=list)
+    pose: list[np.ndarray] = field(default_factory=list)  # 4x4 in the robot's map (first submap origin)
+    beliefs: dict[str, list[tuple[float, np.ndarray]]] = field(default_factory=dict)  # peer -> (t, pose in this map)
+
+
 class OnboardStack:
     """Feeds a robot's sensors into its :class:`LocalEstimator` through its lane."""
 
-    def __init__(self, scenario: Scenario, robot: Robot, lane: Lane, imu_spec: ImuSpec, gravity: float):
+    def __init__(
+        self, scenario: Scenario, robot: Robot, lane: Lane, imu_spec: ImuSpec, gravity: float, markers: list[TeamMarker]
+    ):
         cfg = scenario.slam
         self.robot = robot
         self.lane = lane
@@ -135,16 +170,67 @@ class OnboardStack:
             frame_switch_distance=None if mapping.enabled else cfg.frame_switch_distance_m,
         )
         self.mapper = local_mapper(robot.name, calibration(self.vo_rig), mapping) if mapping.enabled else None
+        team = [r.name for r in scenario.robots]
+        self.agent = Agent(robot.name, team, markers, self.estimator, self.mapper, agent_params(cfg))
+        self.exchange = cfg.graph.enabled
+        self.detect_markers = cfg.graph.enabled and cfg.detections.enabled
+        self.network: Network | None = None
+        self._graph_queued = False
         self.partitions: list[tuple[float, str]] = []  # (t, reason) of each new submap
         self._depth: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (depth, left image) until its VO is applied
         self._switch_pending = False
         self.log = EstimateLog()
+        self.slam_log = SlamLog()
         self.on_vo_result = None  # optional callback(result), e.g. the recording
+
+    # ------------------------------------------------------------------ the team
+
+    def connect(self, network: Network) -> None:
+        """Exchange messages with the team over ``network`` (with ``slam.graph.enabled``)."""
+        if self.exchange:
+            self.network = network
+            network.on_receive(self.robot.name, self._deliver)
+
+    def _send(self, messages: list[Outgoing]) -> None:
+        if messages and self.network is not None:
+            for m in messages:
+                if m.to is None:
+                    self.network.broadcast(self.robot.name, m.kind, m.payload, to=self.agent.peers)
+                else:
+                    self.network.send(self.robot.name, m.to, m.kind, m.payload)
+        self._schedule_graph()
+
+    def _deliver(self, delivery: Delivery) -> None:
+        payload = delivery.message.payload
+        self.lane.submit(
+            "messages", work=lambda: self.agent.receive(payload), on_done=lambda out, t: self._send(out), priority=Priority.BACKGROUND
+        )
+
+    def _schedule_graph(self) -> None:
+        """One background iSAM2 job at a time, whenever factors arrived."""
+        if not self.exchange or self._graph_queued or not self.agent.dirty:
+            return
+        self._graph_queued = True
+        self.lane.submit("graph", work=lambda: self.agent.optimize(self.lane.env.now), on_done=self._graph_done, priority=Priority.BACKGROUND)
+
+    def _graph_done(self, _stats, _t: float) -> None:
+        self._graph_queued = False
+        self._schedule_graph()
+
+    def detection(self, now: float, image: np.ndarray, rig: StereoRig, T_body_cam: np.ndarray) -> None:
+        """Marker detection in a left image of any of the robot's rigs (thesis 6.2.1)."""
+        if self.detect_markers and self.estimator.initialised:
+            K = rig.intrinsics
+            self.lane.submit(
+                "detection",
+                work=lambda: self.agent.detect(now, image, rig.name, K, T_body_cam),
+                on_done=lambda out, t: self._send(out),
+            )
 
     # ------------------------------------------------------------------ sensor events
 
     def imu(self, now: float, accel: np.ndarray, gyro: np.ndarray) -> None:
-        self.lane.submit("strapdown", work=lambda: self.estimator.on_imu(now, accel, gyro))
+        self.lane.submit("strapdown", work=lambda: self.agent.on_imu(now, accel, gyro), on_done=lambda out, t: self._send(out))
 
     def wheel_odometry(self, v_body: np.ndarray) -> None:
         if self.use_odometry:
@@ -207,15 +293,17 @@ class OnboardStack:
     def _check_partition(self, now: float) -> None:
         est = self.estimator
         reason = None if self._switch_pending else self.mapper.partition_due(est.position_std(), est.distance_in_frame)
-        if reason is not None and self.lane.submit("filter_update", work=lambda: self._new_submap(now, reason)) is not None:
-            self._switch_pending = True
+        if reason is None:
+            return
+        job = self.lane.submit("filter_update", work=lambda: self._new_submap(now, reason), on_done=lambda out, t: self._send(out))
+        self._switch_pending = job is not None
 
-    def _new_submap(self, now: float, reason: str) -> None:
+    def _new_submap(self, now: float, reason: str) -> list[Outgoing]:
         """Thesis 5.1.3: a new submap, and with it a frame switch of the filter."""
-        switch = self.estimator.frame_switch()
-        self.mapper.start_submap(now, switch.frame_index)
+        out = self.agent.new_submap(now)
         self.partitions.append((now, reason))
         self._switch_pending = False
+        return out
 
     # ------------------------------------------------------------------ logging
 
@@ -238,3 +326,17 @@ class OnboardStack:
         log.position_std.append(np.sqrt(np.diag(f.covariance()[:3, :3])))
         log.bias.append(np.concatenate([f.accel_bias, f.gyro_bias]))
         log.bias_true.append(bias_true)
+        if self.exchange:
+            self._record_slam(now)
+
+    def _record_slam(self, now: float) -> None:
+        pose = self.agent.online_pose()
+        if pose is None:
+            return
+        slog = self.slam_log
+        slog.t.append(now)
+        slog.pose.append(pose)
+        for peer in self.agent.peers:
+            belief = self.agent.belief(peer)
+            if belief is not None:
+                slog.beliefs.setdefault(peer, []).append((now, belief))

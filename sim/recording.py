@@ -104,6 +104,22 @@ class Recorder:
                 columns=rr.Scalars.columns(scalars=values),
             )
 
+    def log_slam(self, robot: str, times: np.ndarray, T_world_est: np.ndarray) -> None:
+        """The online SLAM trajectory (eq. 4.6), drawn in the world via the robot's true start frame."""
+        self.rec.log(f"world/slam/{robot}", rr.LineStrips3D([T_world_est[:, :3, 3]], colors=[[80, 220, 80]]), static=True)
+
+    def log_graph(self, robot: str, edges: list[tuple[str, np.ndarray, np.ndarray]], colours: dict[str, tuple[int, int, int]],
+                  origins: np.ndarray, sigmas: np.ndarray) -> None:
+        """A robot's final graph in the world: one layer per factor type, and the submap
+        origins with their marginal position standard deviations as ellipsoids."""
+        by_kind: dict[str, list] = {}
+        for kind, a, b in edges:
+            by_kind.setdefault(kind, []).append(np.stack([a[:3], b[:3]]))
+        for kind, strips in by_kind.items():
+            self.rec.log(f"world/graph/{robot}/{kind}", rr.LineStrips3D(strips, colors=[colours[kind]]), static=True)
+        if len(origins):
+            self.rec.log(f"world/graph/{robot}/covariance", rr.Ellipsoids3D(centers=origins, half_sizes=sigmas, colors=[[255, 170, 0]]), static=True)
+
     def log_map(self, robot: str, robot_number: int, points: np.ndarray, submap: np.ndarray, obstacle: np.ndarray,
                 origins: np.ndarray, rolling_cells: np.ndarray) -> None:
         """A robot's global map in the world frame (via its true start frame): points

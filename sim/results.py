@@ -34,7 +34,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import LightSource
 
-from sim import evaluation, map_results
+from sim import evaluation, map_results, slam_results
 from sim.runner import Run
 from sim.scenario import Scenario, dump_scenario
 
@@ -54,6 +54,11 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
         (out / "error.txt").write_text(error)
     robots_metrics: dict[str, Any] = {}
     depth_rows, lane_rows, route_rows = [], [], []
+    gt_world = {
+        n: (np.asarray(r.log.gt_t), np.stack([evaluation.pose_matrix(p) for p in r.log.gt_pose]))
+        for n, r in run.robots.items() if r.log.gt_pose
+    }
+    landmark_world = slam_results.lander_tag_pose(run.world.model, run.world.data)
     for name, runtime in run.robots.items():
         log, robot = runtime.log, runtime.robot
         _write_tum(out / "trajectories" / f"{name}.gt.tum", log.gt_t, log.gt_pose)
@@ -70,8 +75,12 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
         waypoints = [_waypoint_row(name, wp) for wp in robot.waypoints]
         route_rows += waypoints
         counts = {s: sum(w["status"] == s for w in waypoints) for s in ("reached", "failed", "pending")}
-        filter_section = map_metrics = None
+        filter_section = map_metrics = slam_metrics = None
         if runtime.onboard is not None:
+            slam_metrics = _guarded(
+                out, f"SLAM evaluation of {name}", slam_results.slam_section,
+                out, name, {n: r.log for n, r in run.robots.items()}, runtime.onboard, gt_world, landmark_world, recorder,
+            )
             filter_section = _guarded(out, f"filter evaluation of {name}", _filter_section, out, name, log, runtime.onboard, recorder)
             map_metrics = _guarded(
                 out, f"map evaluation of {name}", map_results.map_section,
@@ -85,6 +94,7 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
             "camera_frames": log.frames,
             "stereo": stereo,
             "filter": filter_section,
+            "slam": slam_metrics,
             "map": map_metrics,
             "lane": {
                 "utilization": runtime.lane.utilization(run.sim_time),
@@ -111,12 +121,16 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
         plot_topdown(run, out / "topdown.png")
         if any(m.get("filter") for m in robots_metrics.values()):
             plot_filter_errors(robots_metrics, out / "filter_error.png")
+        slam_results.plot_slam(robots_metrics, {n: T[:, :3, 3] for n, (_, T) in gt_world.items()}, out / "slam.png")
         maps = {name: m["map"] for name, m in robots_metrics.items() if m.get("map")}
         paths = {name: np.stack(r.log.gt_pose)[:, :3] for name, r in run.robots.items() if r.log.gt_pose}
         map_results.plot_maps(maps, paths, run.terrain, out / "map_topdown.png")
     for m in robots_metrics.values():  # series went into the plot; keep metrics.json scalar-sized
         if m.get("map"):
             m["map"].pop("_plot", None)
+        if m.get("slam"):
+            m["slam"].pop("_plot", None)
+            m["slam"].pop("error_over_time", None)
         if m.get("filter"):
             m["filter"].pop("error_over_time", None)
             m["filter"].get("nees_roll_pitch_velocity", {}).pop("series", None)
@@ -144,8 +158,8 @@ def _filter_section(out: Path, name: str, log, onboard, recorder) -> dict[str, A
     T_est = np.stack(est.pose_first_frame)
     if recorder is not None:
         recorder.log_filter(name, np.asarray(est.t), T_world_start[None] @ T_est, np.stack(est.position_std))
-    _write_tum_matrices(out / "trajectories" / f"{name}.gt_start.tum", gt_t, gt_start)
-    _write_tum_matrices(out / "trajectories" / f"{name}.filter.tum", np.asarray(est.t), T_est)
+    evaluation.write_tum(out / "trajectories" / f"{name}.gt_start.tum", gt_t, gt_start)
+    evaluation.write_tum(out / "trajectories" / f"{name}.filter.tum", np.asarray(est.t), T_est)
     section: dict[str, Any] = {"status": "ok"}
     try:
         section.update(evaluation.trajectory_metrics(np.asarray(est.t), T_est, gt_t, gt_start))
@@ -165,14 +179,6 @@ def _filter_section(out: Path, name: str, log, onboard, recorder) -> dict[str, A
     section["vo"] = {"frames": vo.frames, "ok": vo.ok, "applied": vo.applied, "rejected_by_gate": vo.rejected, "failures": vo.failures}
     section["frame_switches"] = len(onboard.estimator.switches)
     return section
-
-
-def _write_tum_matrices(path: Path, times, poses: np.ndarray) -> None:
-    from scipy.spatial.transform import Rotation
-
-    quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
-    rows = [np.concatenate([[t], T[:3, 3], [q[3], q[0], q[1], q[2]]]) for t, T, q in zip(times, poses, quats)]
-    _write_tum(path, list(times), [r[1:] for r in rows])
 
 
 def plot_filter_errors(robots_metrics: dict[str, Any], path: Path) -> None:

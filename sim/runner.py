@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 import simpy
+from scipy.spatial.transform import Rotation
 
 from comms import Network, StereoStream, raw_stereo_load
 from sim.camera_rig import StereoRig
@@ -34,6 +35,7 @@ from sim.seeding import RandomStreams
 from sim.sensors import IMU_PRESETS, ImuModel, InertialAverager, StereoRenderer, WheelOdometryModel
 from sim.terrain import Terrain, generate_terrain
 from sim.world import World, build_world
+from slam.agent import TeamMarker
 from slam.stereo import StereoMatcher
 
 GROUND_TRUTH_RATE_HZ = 50.0
@@ -181,6 +183,7 @@ class Run:
         self.substeps = round(self.tick_s / scenario.physics.timestep_s)
         self._settle(robots)
         t0 = self.timers.add("setup", t0)
+        self.team_markers = self._team_markers(robots)
         self.robots = {r.name: self._runtime(r) for r in robots}
         self._root_body = {r.name: self._robot_root_body(r) for r in robots}
         self.network = Network(
@@ -191,10 +194,28 @@ class Run:
             positions=self.antenna_positions,
             line_of_sight=self.line_of_sight,
         )
+        for runtime in self.robots.values():
+            if runtime.onboard is not None:
+                runtime.onboard.connect(self.network)
         if self.recorder is not None:
             self.recorder.log_world(self.terrain, self.world)
             self.network.subscribe(self.recorder.log_link_event)
         self.timers.add("setup", t0)
+
+    def _team_markers(self, robots: list[Robot]) -> list[TeamMarker]:
+        """The markers every robot knows by calibration (thesis 4.2.2): each robot's mast or
+        body tags in its body frame, and the lander's tag as landmark ``tag_id``."""
+        markers = []
+        for robot in robots:
+            for spec in robot.markers:
+                T = np.eye(4)
+                T[:3, :3] = Rotation.from_quat(spec.quat, scalar_first=True).as_matrix()
+                T[:3, 3] = spec.pos
+                markers.append(TeamMarker(spec.tag_id, spec.size_m, robot=robot.name, T_body_marker=T))
+        lander = self.terrain.lander
+        if lander is not None:
+            markers.append(TeamMarker(lander.marker.tag_id, lander.marker.size_m, landmark=lander.marker.tag_id))
+        return markers
 
     def _settle(self, robots: list[Robot]) -> None:
         """Let the robots come to rest (motors stopped) for :data:`SETTLE_S`, then restart the clock at 0."""
@@ -240,7 +261,7 @@ class Run:
         onboard = None
         if self.scenario.slam.enabled:
             gravity = float(-self.world.model.opt.gravity[2])
-            onboard = OnboardStack(self.scenario, robot, lane, IMU_PRESETS[preset], gravity)
+            onboard = OnboardStack(self.scenario, robot, lane, IMU_PRESETS[preset], gravity, self.team_markers)
             if self.recorder is not None:
                 every = self.scenario.output.recording_image_every
                 onboard.on_vo_result = lambda result, r=robot, o=onboard, n=every: (
@@ -318,6 +339,14 @@ class Run:
             self.sim_time = self.env.now
             self.wall_s = time.perf_counter() - start + self.timers.seconds["setup"]
             self.close()
+
+    def drain(self, seconds: float) -> None:
+        """After :meth:`execute`: let the network deliver what is in flight and the lanes
+        process it for ``seconds`` more, with physics and sensors stopped (no new
+        measurements). For checks that need a quiet network, e.g. that all robots end
+        with the same graph."""
+        self.env.run(until=self.env.now + seconds)
+        self.sim_time = self.env.now
 
     def close(self) -> None:
         """Release the renderers' GL contexts (``execute`` does this when it ends)."""
@@ -402,10 +431,13 @@ class Run:
                 t = time.perf_counter()
                 self.recorder.log_frame(runtime.robot.name, rig, now, stereo)
                 self.timers.add("recording", t)
-            for_vo = runtime.onboard is not None and rig is runtime.onboard.vo_rig
-            if for_vo:
+            onboard = runtime.onboard
+            for_vo = onboard is not None and rig is onboard.vo_rig
+            if onboard is not None:
                 T_body_cam = body_camera_transform(self.world.model, self.world.data, runtime.robot, rig.left_camera)
-                runtime.onboard.capture(frame, now, T_body_cam)
+                if for_vo:
+                    onboard.capture(frame, now, T_body_cam)
+                onboard.detection(now, stereo.left, rig, T_body_cam)
             job = runtime.lane.submit(
                 "stereo",
                 work=lambda m=matcher, s=stereo: self._timed("stereo", m.depth, s.left, s.right),

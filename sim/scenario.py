@@ -171,6 +171,9 @@ class RouteConfig(StrictModel):
     tolerance_m: PositiveFloat = 0.35
     waypoints: list[WaypointConfig] = []
     scan_duration_s: PositiveFloat = 20.0
+    scan_tilt_deg: float | None = Field(
+        None, ge=-45, le=90, description="rover head tilt during scans (positive looks down; default: the preset's 25 deg)"
+    )
     cruise_altitude_m: PositiveFloat = Field(3.0, description="hexacopter default height above terrain")
     land: bool = Field(False, description="hexacopter lands after the last waypoint")
     stuck_timeout_s: PositiveFloat = Field(15.0, description="no progress for this long counts as stuck")
@@ -263,6 +266,9 @@ class StageCosts(StrictModel):
     mapping_s: NonNegFloat = Field(
         0.01, description="obstacle classification and submap integration of one depth image (thesis 8.4: 0.01 s mean integration)"
     )
+    detection_s: NonNegFloat = Field(0.01, description="AprilTag detection and PnP in one image (chosen; the thesis gives no figure)")
+    messages_s: NonNegFloat = Field(1e-4, description="decoding a peer message and adding its factors")
+    graph_s: NonNegFloat = Field(0.0017, description="one iSAM2 update (thesis 8.4: 1.7 ms mean)")
 
 
 class ComputeConfig(StrictModel):
@@ -295,6 +301,33 @@ class MappingConfig(StrictModel):
     window_cells: int = Field(5, ge=3, le=6, description="h_diff window of the 2.5D height map, 0.05 m cells (thesis 5.1.1)")
 
 
+class GraphConfig(StrictModel):
+    """The multi-robot pose graph and the exchange between robots (thesis 4.2, 3.3)."""
+
+    enabled: bool = Field(True, description="false: filter only, no graph optimisation, no messages, no detections")
+    topology: Literal["local_reference", "sequential"] = Field(
+        "local_reference", description="thesis 4.2.2: filter estimates on submap origins, or sequential odometry (eq. 4.8-4.9)"
+    )
+    cauchy_c: PositiveFloat = Field(3.5, description="Cauchy kernel constant (eq. 4.10) on detections, matches and landmarks, Mahalanobis units")
+    pose_period_s: PositiveFloat = Field(1.0, description="each robot broadcasts its pose estimate this often")
+    covariance_period_s: PositiveFloat = Field(10.0, description="marginal covariances of the latest submap origins this often")
+    pose_buffer_s: PositiveFloat = Field(900.0, description="how far back a robot can answer a detection of itself")
+
+
+class DetectionConfig(StrictModel):
+    """AprilTag robot detections and landmark observations (thesis 6.2.1)."""
+
+    enabled: bool = True
+    uncertainty: Literal["constant", "quadratic"] = Field(
+        "quadratic", description="eq. 8.1 or 8.2; the learned models of thesis 6.2.3 (lut, online) are not built yet"
+    )
+    min_interval_s: NonNegFloat = Field(2.0, description="at most one detection of each target per interval")
+    max_distance_m: PositiveFloat = Field(6.0, description="markers farther than this are not used")
+    max_ambiguity: float = Field(
+        0.7, gt=0, le=1.0, description="PnP's best over second-best reprojection error at most this (near 1 the planar pose is ambiguous)"
+    )
+
+
 class SlamConfig(StrictModel):
     """The on-board estimation stack of every robot (thesis ch. 4)."""
 
@@ -310,6 +343,8 @@ class SlamConfig(StrictModel):
         5.0, description="without mapping only: frame switch after this distance driven in the current frame"
     )
     mapping: MappingConfig = MappingConfig()
+    graph: GraphConfig = GraphConfig()
+    detections: DetectionConfig = DetectionConfig()
     initial_rest_s: PositiveFloat = Field(
         0.5,
         description="roll and pitch initialised from the mean accelerometer reading over this long before the route starts",

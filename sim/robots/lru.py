@@ -27,7 +27,8 @@ Model (body frame x forward, y left, z up, origin = IMU site at the chassis cent
 The route controller turns towards the waypoint (point turn beyond 60 deg of heading
 error) and drives at ``speed_mps``; a waypoint is reached within ``tolerance_m``; with
 ``scan`` the rover stops and pans its head a full turn (-180 -> +180 deg) in
-``scan_duration_s`` (plus slewing to and from the start).
+``scan_duration_s`` (plus slewing to and from the start), its head tilted by
+``route.scan_tilt_deg`` if set (e.g. up towards a lander's tag or another rover's mast).
 """
 
 from __future__ import annotations
@@ -243,8 +244,11 @@ class LRU(Robot):
                     v, w = self._tilt_guard(t, tilt, v, w)
         if self.phase == "scan":
             self.pan_ref = self._scan_pan(t - self._scan_t0)
+            scan_tilt = self.cfg.route.scan_tilt_deg
+            self.tilt_ref = math.radians(DEFAULT_TILT_DEG if scan_tilt is None else scan_tilt)
             if self.pan_ref is None:
                 self.pan_ref = 0.0
+                self.tilt_ref = math.radians(DEFAULT_TILT_DEG)
                 self._begin_next(t, xy)
         self._apply(v, w)
 

@@ -1,0 +1,365 @@
+"""One robot's on-board collaborative SLAM (thesis 3.3, 4.2, 5.2.1, 6.2.1).
+
+The agent composes the local estimator (filter and VO, thesis 4.1), the local mapping
+(ch. 5), marker detection (6.2.1) and the robot's own multi-robot graph (4.2). Its
+caller (the simulator's lane jobs, or a log player) hands it sensor data and peer
+messages in the order the robot's computer would process them; every method that
+produces something for the team returns :class:`Outgoing` messages of real bytes
+(:mod:`slam.messages`) for the caller's network. What it exchanges (thesis 3.3):
+
+- its pose estimates, periodically and in answer to a detection of itself;
+- each frame switch ``w`` and, once finished, each submap, once to every robot;
+- its robot detections ``d`` and landmark observations ``o``, with its own pose at the
+  detection time from its :class:`~slam.pose_buffer.PoseBuffer`.
+
+Every robot applies every message, its own included, to its own graph, so all robots
+that received the same messages hold the same factors (delayed or reordered messages
+change nothing: the local-reference topology never replaces a factor). A robot cut off
+keeps estimating with what it has and catches up when messages arrive; a message seen
+before (same origin and sequence number) is ignored.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam.filter import switch_pose3_covariance
+from slam.graph import GraphParams, MultiRobotGraph, UpdateStats
+from slam.local_estimator import FrameSwitch, LocalEstimator
+from slam.local_mapper import LocalMapper
+from slam.markers import MarkerDetector, UncertaintyModel, detection_covariance, relative_pose
+from slam.messages import (
+    DetectionMessage,
+    Envelope,
+    FrameSwitchMessage,
+    MessageException,
+    PoseEstimate,
+    SubmapMessage,
+    decode,
+    encode,
+)
+from slam.pose_buffer import PoseBuffer
+from slam.submap import Submap
+
+#: Network message kinds (comms policies) of each exchanged type.
+KIND_POSE = "pose"
+KIND_DETECTION = "detection"
+KIND_FRAME_SWITCH = "frame_switch"
+KIND_SUBMAP = "submap"
+
+
+@dataclass(frozen=True)
+class TeamMarker:
+    """A marker the team knows (calibrated, thesis 4.2.2): on a robot (``T_body_marker``)
+    or defining a landmark (the landmark frame is the marker frame)."""
+
+    tag_id: int
+    size_m: float
+    robot: str | None = None
+    landmark: int | None = None
+    T_body_marker: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def __post_init__(self):
+        if (self.robot is None) == (self.landmark is None):
+            raise ValueError(f"marker {self.tag_id}: give exactly one of robot and landmark")
+
+
+@dataclass(frozen=True)
+class AgentParams:
+    graph: GraphParams = field(default_factory=GraphParams)
+    uncertainty: UncertaintyModel = UncertaintyModel.QUADRATIC  # eq. 8.1 / 8.2
+    detection_interval_s: float = 2.0  # at most one detection of a target per interval
+    max_detection_distance_m: float = 6.0
+    max_ambiguity: float = 0.7  # PnP: best / second-best reprojection error at most this (1: ambiguous)
+    pose_period_s: float = 1.0  # periodic pose broadcast
+    buffer_period_s: float = 0.05
+    buffer_horizon_s: float = 900.0
+    covariance_period_s: float = 10.0  # marginals of the latest submap origins (for the matcher)
+
+
+@dataclass(frozen=True)
+class Outgoing:
+    """A message for the network: ``to`` None means every other robot."""
+
+    kind: str
+    payload: bytes
+    to: str | None = None
+
+
+@dataclass
+class DetectionRecord:
+    """One of this robot's own detections, for evaluation against ground truth."""
+
+    t: float
+    tag_id: int
+    target: str  # robot name or "landmark:<id>"
+    T_detector_target: np.ndarray
+    cov: np.ndarray
+    distance_m: float
+    ambiguity: float
+
+
+@dataclass
+class AgentStats:
+    received: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    duplicates: int = 0
+    undecodable: int = 0
+    detections_seen: int = 0  # markers of the team found in images
+    detections_used: int = 0
+    detections_rejected: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    unanswerable: int = 0  # detections of this robot at a time its buffer no longer (or not yet) holds
+    graph_updates: list[UpdateStats] = field(default_factory=list)
+    covariance_s: list[float] = field(default_factory=list)
+
+
+class Agent:
+    """See the module docstring. ``team``: every robot's name (this one included)."""
+
+    def __init__(
+        self,
+        name: str,
+        team: list[str],
+        markers: list[TeamMarker],
+        estimator: LocalEstimator,
+        mapper: LocalMapper | None = None,
+        params: AgentParams = AgentParams(),
+    ):
+        if name not in team:
+            raise ValueError(f"agent {name!r} is not in its team {team}")
+        self.name = name
+        self.peers = [r for r in team if r != name]
+        self.markers = {m.tag_id: m for m in markers}
+        self.estimator = estimator
+        self.mapper = mapper
+        self.params = params
+        self.graph = MultiRobotGraph(name, params.graph)
+        self.buffer = PoseBuffer(name, params.buffer_period_s, params.buffer_horizon_s)
+        self.stats = AgentStats()
+        self.detections: list[DetectionRecord] = []
+        self.peer_submaps: dict[tuple[str, int], bytes] = {}
+        self.peer_pose: dict[str, PoseEstimate] = {}  # latest periodic estimate of each peer
+        self.peer_switches: dict[str, dict[int, np.ndarray]] = defaultdict(dict)  # robot -> index_from -> T (own too)
+        self.marginals: dict[tuple[str, int], np.ndarray] = {}
+        self.dirty = False  # factors arrived since the last optimisation
+        self._seq = itertools.count(1)
+        self._seen: set[tuple[str, int]] = set()
+        self._registered: set[tuple[str, float]] = set()  # robot poses handed to the graph
+        self._last_detection: dict[str, float] = {}
+        self._switches_done = 0
+        self._next_pose_t: float | None = None
+        self._last_covariance_t = -math.inf
+        self._detectors: dict[str, MarkerDetector] = {}
+        self.graph.update()  # the prior on this robot's first submap origin: its map frame
+
+    # ------------------------------------------------------------------ own sensors
+
+    def on_imu(self, t: float, accel: np.ndarray, gyro: np.ndarray) -> list[Outgoing]:
+        """A strapdown step; buffers the estimate and broadcasts it periodically."""
+        est = self.estimator
+        est.on_imu(t, accel, gyro)
+        out = self._sync_switches()
+        if not est.initialised:
+            return out
+        f = est.filter
+        if self.buffer.due(t):
+            self.buffer.add(t, f.frame_index, f.pose(), f.pose_covariance())
+        if self._next_pose_t is None or t >= self._next_pose_t - 1e-9:
+            self._next_pose_t = t + self.params.pose_period_s
+            pose = PoseEstimate(self.name, t, f.frame_index, f.pose(), f.pose_covariance())
+            out.append(self._outgoing(KIND_POSE, pose))
+        return out
+
+    def new_submap(self, t: float) -> list[Outgoing]:
+        """Thesis 5.1.3: the mapping starts a new submap, and with it the filter a new frame."""
+        switch = self.estimator.frame_switch()
+        finished = self.mapper.start_submap(t, switch.frame_index) if self.mapper is not None else None
+        out = self._sync_switches()
+        if finished is not None:
+            out.append(self._outgoing(KIND_SUBMAP, SubmapMessage(self.name, finished.index, finished.to_bytes())))
+        return out
+
+    def _sync_switches(self) -> list[Outgoing]:
+        """Frame switches the estimator made since the last call (submap partitions, or
+        distance when mapping is off) become w factors and messages."""
+        out = []
+        switches = self.estimator.switches
+        while self._switches_done < len(switches):
+            out.append(self._outgoing(KIND_FRAME_SWITCH, self._switch_message(switches[self._switches_done])))
+            self._switches_done += 1
+        return out
+
+    def _switch_message(self, switch: FrameSwitch) -> FrameSwitchMessage:
+        rp_var = float(np.max(np.diag(self.estimator.filter.roll_pitch_covariance())))
+        cov = switch_pose3_covariance(switch.T_old_new, switch.cov_xyz_yaw, roll_pitch_var=max(rp_var, 1e-10))
+        return FrameSwitchMessage(self.name, switch.frame_index - 1, switch.t, switch.T_old_new, cov)
+
+    def detect(self, t: float, image: np.ndarray, camera: str, K: np.ndarray, T_body_cam: np.ndarray) -> list[Outgoing]:
+        """Marker detection in one rectified image captured at ``t`` (thesis 6.2.1): at most
+        one detection per target and ``detection_interval_s``, the nearest marker of it."""
+        detector = self._detectors.get(camera)
+        if detector is None:
+            detector = self._detectors[camera] = MarkerDetector(K, {m.tag_id: m.size_m for m in self.markers.values() if m.robot != self.name})
+        found = detector.detect(image)
+        self.stats.detections_seen += len(found)
+        best: dict[str, tuple] = {}
+        for det in found:
+            marker = self.markers[det.tag_id]
+            target = marker.robot if marker.robot is not None else f"landmark:{marker.landmark}"
+            if det.distance_m > self.params.max_detection_distance_m:
+                self.stats.detections_rejected["too far"] += 1
+            elif det.ambiguity > self.params.max_ambiguity:
+                self.stats.detections_rejected["ambiguous"] += 1
+            elif target not in best or det.distance_m < best[target][0].distance_m:
+                best[target] = (det, marker)
+        out = []
+        for target, (det, marker) in sorted(best.items()):
+            if t - self._last_detection.get(target, -math.inf) < self.params.detection_interval_s:
+                continue
+            own = self.buffer.at(t)
+            if own is None:
+                self.stats.detections_rejected["no own pose"] += 1
+                continue
+            cov_marker = detection_covariance(self.params.uncertainty, det.distance_m)
+            T, cov = relative_pose(T_body_cam, det.T_cam_marker, marker.T_body_marker, cov_marker)
+            msg = DetectionMessage(own, T, cov, marker.robot, marker.landmark, det.tag_id, det.distance_m)
+            self._last_detection[target] = t
+            self.stats.detections_used += 1
+            self.detections.append(DetectionRecord(t, det.tag_id, target, T, cov, det.distance_m, det.ambiguity))
+            out.append(self._outgoing(KIND_DETECTION, msg))
+        return out
+
+    # ------------------------------------------------------------------ the team
+
+    def _outgoing(self, kind: str, body) -> Outgoing:
+        """Encode a message of this robot, apply it here first, and address it to the team."""
+        payload = encode(self.name, next(self._seq), body)
+        answers = self.receive(payload)
+        if answers:  # only a detection of this robot by itself would be answered
+            raise RuntimeError(f"{self.name}: own message produced answers")
+        return Outgoing(kind, payload)
+
+    def receive(self, payload: bytes) -> list[Outgoing]:
+        """A message from the network (or from this robot itself); returns the answers."""
+        try:
+            env = decode(payload)
+        except MessageException:
+            self.stats.undecodable += 1
+            return []
+        if env.key in self._seen:
+            self.stats.duplicates += 1
+            return []
+        self._seen.add(env.key)
+        self.stats.received[type(env.body).__name__] += env.origin != self.name
+        return self._apply(env)
+
+    def _apply(self, env: Envelope) -> list[Outgoing]:
+        body = env.body
+        graph = self.graph
+        if isinstance(body, PoseEstimate):
+            if body.answer:
+                self._register(body)
+            elif body.robot != self.name:
+                latest = self.peer_pose.get(body.robot)
+                if latest is None or body.t > latest.t:
+                    self.peer_pose[body.robot] = body
+            return []
+        if isinstance(body, FrameSwitchMessage):
+            graph.add_frame_switch(body.robot, body.index_from, body.t, body.T_from_to, body.cov)
+            self.peer_switches[body.robot][body.index_from] = body.T_from_to
+            self.dirty = True
+            return []
+        if isinstance(body, SubmapMessage):
+            if body.robot != self.name:
+                self.peer_submaps[(body.robot, body.index)] = body.data
+            return []
+        # a detection or landmark observation
+        pose = body.detector_pose
+        self._register(pose)
+        if body.landmark is not None:
+            graph.add_landmark_observation(pose.robot, pose.t, body.landmark, body.T_detector_target, body.cov)
+        else:
+            graph.add_detection(pose.robot, body.target_robot, pose.t, body.T_detector_target, body.cov)
+        self.dirty = True
+        if body.target_robot != self.name or (self.name, pose.t) in self._registered:
+            return []
+        mine = self.buffer.at(pose.t)
+        if mine is None:
+            self.stats.unanswerable += 1
+            return []
+        return [self._outgoing(KIND_DETECTION, PoseEstimate(self.name, pose.t, mine.frame_index, mine.T_frame_body, mine.cov, answer=True))]
+
+    def _register(self, pose: PoseEstimate) -> None:
+        key = (pose.robot, pose.t)
+        if key not in self._registered:
+            self._registered.add(key)
+            self.graph.add_robot_pose(pose.robot, pose.t, pose.frame_index, pose.T_frame_body, pose.cov)
+            self.dirty = True
+
+    # ------------------------------------------------------------------ optimisation
+
+    def optimize(self, now: float) -> UpdateStats:
+        """One iSAM2 step with what arrived; every ``covariance_period_s`` also the marginal
+        covariances of each connected robot's latest submap origin."""
+        stats = self.graph.update()
+        self.stats.graph_updates.append(stats)
+        self.dirty = False
+        if now - self._last_covariance_t >= self.params.covariance_period_s:
+            self._last_covariance_t = now
+            t0 = time.perf_counter()
+            for robot in self.graph.connected_robots():
+                index = self.graph.latest_submap(robot)
+                if index is not None:
+                    self.marginals[(robot, index)] = self.graph.marginal_covariance(robot, index)
+            self.stats.covariance_s.append(time.perf_counter() - t0)
+        return stats
+
+    # ------------------------------------------------------------------ beliefs
+
+    def _origin(self, robot: str, frame_index: int, chain: dict[int, np.ndarray]) -> np.ndarray | None:
+        """Origin of ``robot``'s local frame in this robot's map: the latest optimised submap
+        origin at or before it, with the frame switches since (eq. 4.6)."""
+        latest = self.graph.latest_submap(robot)
+        if latest is None:
+            return None
+        k = min(latest, frame_index)
+        S = self.graph.submap_origin(robot, k)
+        while S is None and k > 0:
+            k -= 1
+            S = self.graph.submap_origin(robot, k)
+        if S is None:
+            return None
+        for i in range(k, frame_index):
+            if i not in chain:
+                return None
+            S = S @ chain[i]
+        return S
+
+    def online_pose(self) -> np.ndarray | None:
+        """This robot's pose in its map (eq. 4.6): submap origin ``s_j`` from the graph
+        composed with the filter's current estimate ``v_t``."""
+        est = self.estimator
+        if not est.initialised:
+            return None
+        f = est.filter
+        S = self._origin(self.name, f.frame_index, self.peer_switches[self.name])
+        return None if S is None else S @ f.pose()
+
+    def belief(self, robot: str) -> np.ndarray | None:
+        """Where this robot believes ``robot`` is, in its own map: the peer's latest pose
+        estimate on its optimised submap origin; None until the graph connects them."""
+        pose = self.peer_pose.get(robot)
+        if pose is None:
+            return None
+        S = self._origin(robot, pose.frame_index, self.peer_switches[robot])
+        return None if S is None else S @ pose.T_frame_body
+
+    def submap(self, robot: str, index: int) -> Submap | None:
+        """A finished submap of a peer this robot received."""
+        data = self.peer_submaps.get((robot, index))
+        return None if data is None else Submap.from_bytes(data)
