@@ -1,0 +1,296 @@
+"""A batch's results as tables, statistics, box plots and a Markdown report.
+
+Files written into the batch folder by :func:`write_report`::
+
+    runs.csv, runs.parquet   the tidy table: one row per run and robot
+    summary.csv              per variant, robot and metric: n, mean, median, std, 95 % CI
+    comparisons.csv          each variant against the baseline over the same seeds
+    plots/<metric>.png       box plots of the report's metrics per variant (one panel per robot)
+    report.md                the report linking them
+
+Tidy table columns: ``run``, ``variant``, ``seed``, ``status``, ``error``,
+``set.<key>`` (every key a variant sets or sweeps), ``robot``; then every scalar of the
+run's ``metrics.json`` flattened with dotted names: the robot's own section without its
+``robots.<name>.`` prefix (``filter.ate_m.rmse``) and the run-level sections with
+theirs (``runtime.wall_s``, ``comms.totals.offered_bytes``, repeated on each robot's row;
+statistics and plots count them once per run, as robot ``(run)``). A run without
+metrics (crashed, timed out, set-up failure) keeps one row with ``robot`` empty.
+
+Statistics (over seeds, completed runs only): the 95 % CI of a mean is Student's t
+interval. A comparison pairs a variant's runs with the baseline's by seed: relative
+change = mean(variant - baseline) / mean(baseline), its CI the t interval of the mean
+paired difference divided by the baseline's mean; the test is the two-sided Wilcoxon
+signed-rank test (:func:`scipy.stats.wilcoxon`) of the paired values.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from sim.batch_exec import read_index
+
+RUN_COLUMNS = ["run", "variant", "seed", "status", "error"]
+#: Keys of metrics.json that the index columns already hold.
+INDEX_KEYS = ("scenario", "seed", "status", "error", "robots")
+SUMMARY_COLUMNS = ["variant", "robot", "metric", "n", "mean", "median", "std", "ci95_low", "ci95_high"]
+COMPARISON_COLUMNS = [
+    "variant", "baseline", "robot", "metric", "n_pairs", "baseline_mean", "variant_mean",
+    "relative_change", "relative_ci95_low", "relative_ci95_high", "wilcoxon_p",
+]  # fmt: skip
+
+
+def flatten(node: Any, prefix: str = "") -> dict[str, Any]:
+    """Scalars of nested dicts under dotted keys; lists are left out (not scalars)."""
+    if isinstance(node, dict):
+        out: dict[str, Any] = {}
+        for key, value in node.items():
+            out.update(flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+        return out
+    if isinstance(node, list):
+        return {}
+    return {prefix: node}
+
+
+def tidy_table(batch_dir: Path) -> pd.DataFrame:
+    """One row per run and robot (see the module docstring)."""
+    index = read_index(batch_dir)
+    params = index.get("params", [])
+    rows, run_level = [], set()
+    for run in index["runs"]:
+        base = {"run": run["id"], "variant": run["variant"], "seed": run["seed"], "status": run["status"], "error": run["error"]}
+        base.update({f"set.{k}": _cell(run["params"].get(k)) for k in params})
+        path = Path(batch_dir) / run["folder"] / "metrics.json"
+        if run["status"] not in ("completed", "failed") or not path.is_file():
+            rows.append({**base, "robot": None})
+            continue
+        metrics = json.loads(path.read_text())
+        shared = flatten({k: v for k, v in metrics.items() if k not in INDEX_KEYS})
+        run_level.update(shared)
+        robots = metrics.get("robots") or {}
+        rows += [{**base, "robot": name, **shared, **flatten(section)} for name, section in robots.items()] or [{**base, "robot": None, **shared}]
+    columns = RUN_COLUMNS + [f"set.{k}" for k in params] + ["robot"]
+    table = pd.DataFrame(rows)
+    table = table[columns + [c for c in table.columns if c not in columns]]
+    table.attrs["run_level"] = sorted(run_level)
+    return table
+
+
+def _cell(value: Any) -> Any:
+    return json.dumps(value) if isinstance(value, (list, dict)) else value
+
+
+def metric_columns(table: pd.DataFrame) -> list[str]:
+    """Numeric metric columns (not the seed, not swept values)."""
+    skip = set(RUN_COLUMNS) | {"robot"}
+    return [
+        c for c in table.columns
+        if c not in skip and not c.startswith("set.") and pd.api.types.is_numeric_dtype(table[c]) and not pd.api.types.is_bool_dtype(table[c])
+    ]  # fmt: skip
+
+
+def mean_ci(values: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """Student's t interval of the mean; NaN for fewer than two values."""
+    n = len(values)
+    if n < 2:
+        return math.nan, math.nan
+    half = stats.t.ppf(0.5 + level / 2, n - 1) * np.std(values, ddof=1) / math.sqrt(n)
+    mean = float(np.mean(values))
+    return mean - half, mean + half
+
+
+def metric_rows(table: pd.DataFrame, metric: str) -> pd.DataFrame:
+    """Completed runs' rows with a value of ``metric``: ``variant``, ``seed``, ``robot``,
+    ``value``. A run-level metric (``table.attrs["run_level"]``, e.g. ``comms.*``)
+    gives one row per run, its robot ``(run)``."""
+    if metric not in table:
+        return pd.DataFrame(columns=["variant", "seed", "robot", "value"])
+    rows = table[table["status"] == "completed"][["run", "variant", "seed", "robot", metric]].rename(columns={metric: "value"})
+    rows["value"] = pd.to_numeric(rows["value"], errors="coerce")
+    if metric in table.attrs.get("run_level", ()):
+        rows = rows.drop_duplicates("run").assign(robot="(run)")
+    return rows.dropna(subset=["value"]).drop(columns="run")
+
+
+def summarize(table: pd.DataFrame, metrics: list[str] | None = None) -> pd.DataFrame:
+    """Per variant, robot and metric over the completed runs' seeds: n, mean, median, std (n-1), 95 % CI."""
+    out = []
+    for metric in metrics if metrics is not None else metric_columns(table):
+        for (variant, robot), group in metric_rows(table, metric).groupby(["variant", "robot"], sort=False):
+            values = group["value"].to_numpy(dtype=float)
+            low, high = mean_ci(values)
+            std = float(np.std(values, ddof=1)) if len(values) > 1 else math.nan
+            out.append([variant, robot, metric, len(values), float(np.mean(values)), float(np.median(values)), std, low, high])
+    return pd.DataFrame(out, columns=SUMMARY_COLUMNS)
+
+
+def compare(table: pd.DataFrame, baseline: str, metrics: list[str]) -> pd.DataFrame:
+    """Every other variant against ``baseline``, per robot and metric, paired by seed."""
+    out = []
+    for metric in metrics:
+        rows = metric_rows(table, metric)
+        base = rows[rows["variant"] == baseline]
+        for (variant, robot), group in rows[rows["variant"] != baseline].groupby(["variant", "robot"], sort=False):
+            pairs = group.merge(base[base["robot"] == robot], on="seed", suffixes=("", "_base"))
+            if not pairs.empty:
+                out.append([variant, baseline, robot, metric, *paired_change(pairs["value_base"].to_numpy(float), pairs["value"].to_numpy(float))])
+    return pd.DataFrame(out, columns=COMPARISON_COLUMNS)
+
+
+def paired_change(base: np.ndarray, variant: np.ndarray) -> list[float]:
+    """n, both means, relative change with its 95 % CI, and the Wilcoxon signed-rank p-value."""
+    n = len(base)
+    diff = variant - base
+    b_mean = float(np.mean(base))
+    low, high = mean_ci(diff)
+    scale = b_mean if b_mean != 0 else math.nan
+    if not np.any(diff):
+        p = 1.0
+    else:
+        p = float(stats.wilcoxon(variant, base, alternative="two-sided").pvalue)
+    return [n, b_mean, float(np.mean(variant)), float(np.mean(diff)) / scale, low / scale, high / scale, p]
+
+
+# --------------------------------------------------------------------------- plots and report
+
+
+def box_plot(table: pd.DataFrame, metric: str, variants: list[str], path: Path) -> bool:
+    """Box plots of ``metric`` per variant, one panel per robot, seeds as dots; False if no values."""
+    rows = metric_rows(table, metric)
+    robots = list(rows["robot"].unique())
+    if not robots:
+        return False
+    fig, axes = plt.subplots(1, len(robots), figsize=(max(4.0, 0.9 * len(variants) * len(robots) + 2), 4.2), dpi=110, squeeze=False)
+    for ax, robot in zip(axes[0], robots):
+        mine = rows[rows["robot"] == robot]
+        present = [v for v in variants if v in set(mine["variant"])]
+        data = [mine[mine["variant"] == v]["value"].to_numpy(float) for v in present]
+        ax.boxplot(data, showmeans=True)
+        ax.set_xticks(range(1, len(present) + 1), present, rotation=30, ha="right", fontsize=8)
+        for i, values in enumerate(data, start=1):
+            ax.plot(np.full(len(values), i) + np.linspace(-0.08, 0.08, len(values)), values, "k.", alpha=0.5)
+        ax.set_title(str(robot), fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel(metric)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return True
+
+
+def _fmt(value: Any, digits: int = 4) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def write_report(batch_dir: Path, metrics: list[str] | None = None) -> Path:
+    """Write the tables, plots and ``report.md`` of a batch folder; return the report's path."""
+    batch_dir = Path(batch_dir)
+    index = read_index(batch_dir)
+    metrics = metrics or index["config"]["metrics"]
+    variants, baseline = index["variants"], index["baseline"]
+    table = tidy_table(batch_dir)
+    table.to_csv(batch_dir / "runs.csv", index=False)
+    _parquet_safe(table).to_parquet(batch_dir / "runs.parquet", index=False)
+    summary = summarize(table)
+    summary.to_csv(batch_dir / "summary.csv", index=False)
+    comparisons = compare(table, baseline, metrics)
+    comparisons.to_csv(batch_dir / "comparisons.csv", index=False)
+
+    runs = index["runs"]
+    counts = {s: sum(r["status"] == s for r in runs) for s in ("completed", "failed", "crashed", "timeout", "pending", "running")}
+    lines = [
+        f"# Batch {index['batch']}",
+        "",
+        *([index["description"], ""] if index.get("description") else []),
+        f"Base scenario `{index['scenario']}`, batch file `{index['batch_file']}`; seeds {index['config']['seeds']}; "
+        f"{len(variants)} variants, {len(runs)} runs: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n) + ".",
+        "",
+        "Tables: [runs.csv](runs.csv) / [runs.parquet](runs.parquet) (one row per run and robot), "
+        "[summary.csv](summary.csv) (every numeric metric), [comparisons.csv](comparisons.csv).",
+        "",
+        "## Variants",
+        "",
+        "| variant | completed | not completed |",
+        "|---|---|---|",
+    ]
+    for v in variants:
+        done = sum(r["status"] == "completed" for r in runs if r["variant"] == v)
+        total = sum(r["variant"] == v for r in runs)
+        lines.append(f"| {v}{' (baseline)' if v == baseline else ''} | {done} | {total - done} |")
+    failures = [r for r in runs if r["status"] != "completed"]
+    if failures:
+        lines += ["", "## Runs that did not complete", "", "| run | status | error |", "|---|---|---|"]
+        lines += [f"| [{r['id']}]({r['folder']}) | {r['status']} | {(r['error'] or '').replace('|', '/')} |" for r in failures]
+    lines += [
+        "",
+        "## Metrics",
+        "",
+        "Over the seeds of completed runs: mean, median, std, and Student's t 95 % CI of the mean.",
+    ]
+    for metric in metrics:
+        rows = summary[summary["metric"] == metric]
+        lines += ["", f"### `{metric}`", ""]
+        if rows.empty:
+            lines.append("No numeric value in any completed run's metrics.")
+            continue
+        plot = f"plots/{re.sub(r'[^A-Za-z0-9_.-]', '_', metric)}.png"
+        if box_plot(table, metric, variants, batch_dir / plot):
+            lines += [f"![{metric}]({plot})", ""]
+        lines += ["| variant | robot | n | mean | median | std | 95 % CI |", "|---|---|---|---|---|---|---|"]
+        for r in rows.itertuples():
+            ci = f"[{_fmt(r.ci95_low)}, {_fmt(r.ci95_high)}]"
+            lines.append(f"| {r.variant} | {_fmt(r.robot)} | {r.n} | {_fmt(r.mean)} | {_fmt(r.median)} | {_fmt(r.std)} | {ci} |")
+    lines += [
+        "",
+        f"## Paired comparisons against `{baseline}`",
+        "",
+        "Runs paired by seed. Relative change = mean(variant - baseline) / mean(baseline); its CI: Student's t 95 % interval",
+        "of the mean paired difference over the baseline's mean. p: two-sided Wilcoxon signed-rank test (scipy.stats.wilcoxon;",
+        "with fewer than 6 pairs it cannot fall below 0.05).",
+        "",
+    ]
+    if comparisons.empty:
+        lines.append("No variant has completed runs paired with the baseline's.")
+    else:
+        lines += [
+            "| variant | robot | metric | pairs | baseline mean | variant mean | relative change | 95 % CI | Wilcoxon p |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in comparisons.itertuples():
+            lines.append(
+                f"| {r.variant} | {_fmt(r.robot)} | `{r.metric}` | {r.n_pairs} | {_fmt(r.baseline_mean)} | {_fmt(r.variant_mean)} "
+                f"| {_pct(r.relative_change)} | [{_pct(r.relative_ci95_low)}, {_pct(r.relative_ci95_high)}] | {_fmt(r.wilcoxon_p, 3)} |"
+            )
+    path = batch_dir / "report.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _pct(value: float) -> str:
+    return "-" if value is None or math.isnan(value) else f"{100 * value:+.1f} %"
+
+
+def _parquet_safe(table: pd.DataFrame) -> pd.DataFrame:
+    """Object columns that mix strings with other values become strings (Parquet needs one type per column)."""
+    out = table.copy()
+    for column in out.columns[out.dtypes.map(pd.api.types.is_object_dtype)]:
+        values = out[column].dropna()
+        if values.map(type).nunique() > 1:
+            out[column] = out[column].map(lambda x: None if x is None or (isinstance(x, float) and math.isnan(x)) else str(x))
+    return out

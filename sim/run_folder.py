@@ -1,0 +1,69 @@
+"""Run one scenario into its results folder: what ``marsyard run`` and every batch run share.
+
+:func:`run_to_folder` builds the run, executes it and writes the folder of
+:mod:`sim.results`; a failure during the simulation still writes everything produced so
+far (``metrics.json`` says ``status: failed``). A failure while setting the run up
+raises :class:`RunSetupError` after writing the traceback to ``error.txt``.
+"""
+
+from __future__ import annotations
+
+import traceback
+from contextlib import AbstractContextManager, nullcontext
+from pathlib import Path
+from typing import Any, Protocol
+
+from sim import results
+from sim.recording import Recorder
+from sim.runner import ProgressCallback, Run
+from sim.scenario import Scenario
+
+
+class RunSetupError(RuntimeError):
+    """The run could not be set up; ``__cause__`` is the original exception, its traceback is in ``error_file``."""
+
+    def __init__(self, error_file: Path, cause: BaseException):
+        self.error_file = error_file
+        super().__init__(f"{type(cause).__name__}: {cause}")
+
+
+class RunProgress(Protocol):
+    """How a caller watches a run: a context around building it, one around simulating
+    it that yields the callback :meth:`sim.runner.Run.execute` reports to."""
+
+    def building(self, scenario: Scenario) -> AbstractContextManager[None]: ...
+
+    def simulating(self, scenario: Scenario) -> AbstractContextManager[ProgressCallback | None]: ...
+
+
+def run_to_folder(scenario: Scenario, out: Path, progress: RunProgress | None = None) -> dict[str, Any]:
+    """Run ``scenario`` and write its results folder ``out``; return the metrics dict."""
+    results.prepare(out, scenario)
+    recorder = (
+        Recorder(out / "recording.rrd", f"{scenario.name}-seed{scenario.seed}", scenario.output.recording_image_scale)
+        if scenario.output.recording
+        else None
+    )
+    with progress.building(scenario) if progress else nullcontext():
+        try:
+            simulation = Run(scenario, recorder)
+        except Exception as exc:
+            (out / "error.txt").write_text(traceback.format_exc())
+            if recorder is not None:
+                recorder.close()
+            raise RunSetupError(out / "error.txt", exc) from exc
+    error = None
+    with progress.simulating(scenario) if progress else nullcontext(None) as report:
+        try:
+            simulation.execute(progress=report)
+        except KeyboardInterrupt:
+            error = "KeyboardInterrupt: run interrupted by the user\n"
+        except Exception:
+            error = traceback.format_exc()
+    try:
+        if recorder is not None:
+            recorder.log_link_series(simulation.network.timeseries())
+        return results.write(simulation, out, error, recorder)
+    finally:
+        if recorder is not None:
+            recorder.close()

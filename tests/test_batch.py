@@ -1,0 +1,238 @@
+"""Monte-Carlo batches: the batch file, validation before running, the process pool and
+Ray executors, resuming, and the statistics of the report."""
+
+import json
+import math
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from sim import aggregate
+from sim.batch import BatchError, check, load_batch, override
+from sim.batch_exec import execute, plan, read_index
+
+runner = CliRunner()
+
+TINY = {
+    "name": "tiny",
+    "duration_s": 2,
+    "terrain": {"size_m": 20, "rocks": {"count": 6}, "craters": {"count": 2}},
+    "robots": [
+        {"name": "rover", "preset": "lru", "start": {"xy": [-3, 0]}, "route": {"waypoints": [[2, 0]]}},
+        {"name": "copter", "preset": "ardea", "start": {"xy": [-3, -3]}, "route": {"waypoints": [[2, -3]]}},
+    ],
+    "output": {"recording": False, "topdown_png": False},
+    "slam": {"enabled": False},
+}
+SLOW_FAST = [
+    {"label": "slow", "set": {"robots.*.route.speed_mps": 0.2}},
+    {"label": "fast", "set": {"robots.*.route.speed_mps": 0.5}},
+]
+# valid for the schema, but the run cannot be set up: 7 Hz does not divide the 200 Hz control tick
+BROKEN = {"label": "broken", "set": {"robots.rover.camera.rate_hz": 7}}
+
+
+def write_batch(folder: Path, **fields) -> Path:
+    (folder / "tiny.yaml").write_text(yaml.safe_dump(TINY))
+    path = folder / "batch.yaml"
+    path.write_text(yaml.safe_dump({"name": "tinybatch", "scenario": "tiny.yaml", **fields}, sort_keys=False))
+    return path
+
+
+def invoke(*args):
+    """Run the CLI; ``text`` is its output with rich's line wrapping undone."""
+    from sim.cli import app
+
+    result = runner.invoke(app, [str(a) for a in args])
+    result.text = " ".join(result.output.split())
+    return result
+
+
+def metrics(folder: Path) -> dict:
+    return json.loads((folder / "metrics.json").read_text())
+
+
+# --------------------------------------------------------------------------- statistics on hand-made tables
+
+
+def table(rows: list[tuple]) -> pd.DataFrame:
+    frame = pd.DataFrame(rows, columns=["variant", "seed", "robot", "status", "m"])
+    frame["run"] = frame["variant"] + "/seed" + frame["seed"].astype(str)
+    frame["error"] = None
+    return frame
+
+
+def test_summary_statistics_on_a_hand_made_table():
+    rows = [("a", 0, "r", "completed", 1.0), ("a", 1, "r", "completed", 2.0), ("a", 2, "r", "completed", 6.0)]
+    rows += [("a", 3, "r", "failed", 100.0), ("b", 0, "r", "completed", 4.0)]
+    summary = aggregate.summarize(table(rows), ["m"]).set_index("variant")
+    a = summary.loc["a"]
+    assert a["n"] == 3 and a["mean"] == pytest.approx(3.0) and a["median"] == pytest.approx(2.0)  # the failed run is left out
+    assert a["std"] == pytest.approx(math.sqrt(7.0))  # ((1-3)^2 + (2-3)^2 + (6-3)^2) / (3-1)
+    half = 4.302652729911275 * math.sqrt(7.0) / math.sqrt(3)  # t(0.975, 2 dof) * s / sqrt(n)
+    assert (a["ci95_low"], a["ci95_high"]) == pytest.approx((3.0 - half, 3.0 + half))
+    b = summary.loc["b"]
+    assert b["n"] == 1 and b["mean"] == 4.0 and math.isnan(b["std"]) and math.isnan(b["ci95_low"])
+
+
+def test_paired_comparison_on_a_hand_made_table():
+    base = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    diff = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]
+    rows = [("base", s, "r", "completed", v) for s, v in enumerate(base)]
+    rows += [("other", s, "r", "completed", v + d) for s, (v, d) in enumerate(zip(base, diff))]
+    rows += [("other", 6, "r", "completed", 50.0), ("other", 0, "extra_robot", "completed", 1.0)]  # no partner: left out
+    comparisons = aggregate.compare(table(rows), "base", ["m"])
+    assert len(comparisons) == 1
+    c = comparisons.iloc[0]
+    assert c["robot"] == "r" and c["n_pairs"] == 6
+    assert c["baseline_mean"] == pytest.approx(3.5) and c["variant_mean"] == pytest.approx(3.85)
+    assert c["relative_change"] == pytest.approx(0.35 / 3.5)
+    half = 2.570581835636314 * math.sqrt(0.035) / math.sqrt(6)  # t(0.975, 5 dof) * s_d / sqrt(n); s_d^2 = 0.175 / 5
+    assert (c["relative_ci95_low"], c["relative_ci95_high"]) == pytest.approx(((0.35 - half) / 3.5, (0.35 + half) / 3.5))
+    assert c["wilcoxon_p"] == pytest.approx(2 / 2**6)  # exact two-sided: all six differences positive, no ties
+
+
+# --------------------------------------------------------------------------- the batch file
+
+
+def test_variants_times_sweep_and_override_round_trip(tmp_path):
+    path = write_batch(
+        tmp_path,
+        seeds=2,
+        set={"output.recording": False},
+        variants=[{"label": "a", "set": {"comms.preset": "spacebotcamp"}}, {"label": "b", "robots": ["rover"]}],
+        sweep={"terrain.rocks.count": [3, 9], "physics.timestep_s": [1e-3]},
+    )
+    batch = load_batch(path)
+    assert [v.name for v in batch.variants] == [
+        "a,terrain.rocks.count=3,physics.timestep_s=0.001",
+        "a,terrain.rocks.count=9,physics.timestep_s=0.001",
+        "b,terrain.rocks.count=3,physics.timestep_s=0.001",
+        "b,terrain.rocks.count=9,physics.timestep_s=0.001",
+    ]
+    assert batch.baseline == batch.variants[0].name
+    specs = batch.specs()
+    assert len(specs) == 8 and [s.seed for s in specs[:4]] == [0] * 4  # seed-major
+    first = specs[0]
+    assert first.overrides == ["output.recording=false", "comms.preset=spacebotcamp", "terrain.rocks.count=3", "physics.timestep_s=0.001", "seed=0"]
+    assert specs[2].robots == ["rover"]
+    assert not check(batch)
+    values = [1e20, "local_reference", [1, 2], True, None, 0.1]
+    assert [yaml.safe_load(override("k", v).split("=", 1)[1]) for v in values] == values
+
+
+@pytest.mark.parametrize(
+    ("fields", "expected"),
+    [
+        ({"seeds": 1, "varaints": []}, "varaints: unknown key; allowed keys here: name, description, scenario, seeds"),
+        ({"seeds": 1, "set": {"seed": 3}}, "'seed' is set by the batch's seeds"),
+        ({"seeds": [1, 1]}, "seeds must be distinct"),
+        ({"seeds": 1, "variants": [{"label": "x"}, {"label": "x"}]}, "variant labels must be unique"),
+        ({"seeds": 1, "variants": [{"label": "x"}], "baseline": "y"}, "baseline: got 'y': not a variant"),
+        ({"seeds": 1, "variants": [{"label": "x", "set": {"a.b": 1}}], "sweep": {"a.b": [1, 2]}}, "keys ['a.b'] are swept too"),
+    ],
+)
+def test_batch_file_errors_name_the_key(tmp_path, fields, expected):
+    with pytest.raises(BatchError) as err:
+        load_batch(write_batch(tmp_path, **fields))
+    assert any(expected in line for line in err.value.problems), err.value.problems
+
+
+def test_check_names_every_invalid_variant_and_runs_nothing(tmp_path):
+    variants = [
+        SLOW_FAST[0],
+        {"label": "six_d", "set": {"slam.matching.mode": "6d"}},  # a component that does not exist
+        {"label": "nobody", "robots": ["rover", "ghost"]},
+        {"label": "moon_laser", "set": {"comms.preset": "moon_laser"}},
+    ]
+    path = write_batch(tmp_path, seeds=[1], variants=variants)
+    result = invoke("batch", path, "--out", tmp_path / "out")
+    assert result.exit_code == 2, result.output
+    text = result.text
+    assert "variant six_d: invalid scenario" in text and "slam.matching: unknown key" in text
+    assert "variant nobody: invalid scenario" in text and "no robot named 'ghost'" in text
+    assert "variant moon_laser: invalid scenario" in text and "moon_laser" in text and "spacebotcamp" in text
+    assert "variant slow" not in text and "3 of 4 variants invalid; nothing was run" in text
+    assert not (tmp_path / "out").exists()
+    ok = invoke("batch", write_batch(tmp_path, seeds=[1, 2], variants=SLOW_FAST), "--check")
+    assert ok.exit_code == 0 and "2 variants x 2 seeds = 4 runs" in ok.text
+
+
+# --------------------------------------------------------------------------- running batches
+
+
+def test_pool_batch_records_a_failing_run_summarises_and_resumes_without_rerunning(tmp_path):
+    path = write_batch(tmp_path, seeds=[1, 2], variants=[*SLOW_FAST, BROKEN], metrics=["distance_m", "camera_frames"])
+    out = tmp_path / "out"
+    result = invoke("batch", path, "--out", out, "--workers", 2)
+    assert result.exit_code == 1, result.output  # not every run completed
+    runs = {r["id"]: r for r in read_index(out)["runs"]}
+    assert len(runs) == 6
+    for variant in ("slow", "fast"):
+        for seed in (1, 2):
+            run = runs[f"{variant}/seed{seed}"]
+            assert run["status"] == "completed", run
+            assert metrics(out / run["folder"])["seed"] == seed
+    for seed in (1, 2):
+        run = runs[f"broken/seed{seed}"]
+        assert run["status"] == "failed" and "must divide physics.control_rate_hz" in run["error"]
+        assert (out / run["folder"] / "error.txt").is_file()
+
+    tidy = pd.read_parquet(out / "runs.parquet")
+    assert len(tidy) == 4 * 2 + 2  # a row per completed run and robot, one per failed run
+    assert set(tidy[tidy["variant"] == "broken"]["robot"].isna()) == {True}
+    assert sorted(tidy["set.robots.*.route.speed_mps"].dropna().unique()) == [0.2, 0.5]
+    summary = pd.read_csv(out / "summary.csv")
+    for variant in ("slow", "fast"):
+        row = summary[(summary["variant"] == variant) & (summary["robot"] == "rover") & (summary["metric"] == "distance_m")].iloc[0]
+        values = [metrics(out / runs[f"{variant}/seed{s}"]["folder"])["robots"]["rover"]["distance_m"] for s in (1, 2)]
+        assert row["n"] == 2 and row["mean"] == pytest.approx(sum(values) / 2)
+    run_level = summary[summary["metric"] == "runtime.sim_s"]  # one value per run, not per robot
+    assert set(run_level["robot"]) == {"(run)"} and set(run_level["n"]) == {2}
+    fast_vs_slow = pd.read_csv(out / "comparisons.csv").query("robot == 'rover' and metric == 'distance_m'").iloc[0]
+    assert fast_vs_slow["variant"] == "fast" and fast_vs_slow["relative_change"] > 0.5  # 0.5 against 0.2 m/s
+    report = (out / "report.md").read_text()
+    assert "(plots/distance_m.png)" in report and (out / "plots" / "distance_m.png").stat().st_size > 0
+    assert "broken/seed1" in report and "Wilcoxon" in report
+    (out / "report.md").unlink()
+    assert invoke("report", out, "--metric", "camera_frames").exit_code == 0
+    report = (out / "report.md").read_text()
+    assert "### `camera_frames`" in report and "### `distance_m`" not in report
+
+    before = {r["id"]: (r["started"], r["finished"]) for r in read_index(out)["runs"]}
+    mtimes = {p: p.stat().st_mtime_ns for p in out.glob("runs/*/*/metrics.json")}
+    again = invoke("batch", path, "--out", out, "--resume")
+    assert "6 runs, 0 to do" in again.text, again.output
+    assert {r["id"]: (r["started"], r["finished"]) for r in read_index(out)["runs"]} == before
+    assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/*/metrics.json")} == mtimes
+
+    retry = invoke("batch", path, "--out", out, "--retry-failed")
+    assert "6 runs, 2 to do" in retry.text, retry.output
+    after = {r["id"]: (r["started"], r["finished"]) for r in read_index(out)["runs"]}
+    assert [i for i in after if after[i] != before[i]] == ["broken/seed1", "broken/seed2"]
+
+
+def test_a_run_past_the_timeout_is_killed_and_recorded(tmp_path):
+    batch = load_batch(write_batch(tmp_path, seeds=[1], timeout_s=0.5))
+    index, todo = plan(batch, tmp_path / "out")
+    execute(index, todo, workers=1)
+    (run,) = read_index(tmp_path / "out")["runs"]
+    assert run["status"] == "timeout" and "timeout_s=0.5" in run["error"]
+
+
+def test_ray_gives_the_same_metrics_as_the_process_pool(tmp_path):
+    path = write_batch(tmp_path, seeds=[4], variants=SLOW_FAST)
+    assert invoke("batch", path, "--out", tmp_path / "pool", "--workers", 2).exit_code == 0
+    result = invoke("batch", path, "--ray", "--workers", 2, "--out", tmp_path / "ray")
+    assert result.exit_code == 0, result.output
+    assert "local Ray" in result.text
+    for run in read_index(tmp_path / "ray")["runs"]:
+        assert run["status"] == "completed"
+        pool = aggregate.flatten(metrics(tmp_path / "pool" / run["folder"]))
+        ray = aggregate.flatten(metrics(tmp_path / "ray" / run["folder"]))
+        timing = [k for k in pool if k.startswith("runtime.") or "wall" in k]
+        assert {k: v for k, v in pool.items() if k not in timing} == {k: v for k, v in ray.items() if k not in timing}
+        assert (tmp_path / "ray" / run["folder"] / "trajectories" / "rover.gt.tum").is_file()
