@@ -8,7 +8,7 @@ export MUJOCO_GL ?= egl
 # pytest workers: 2 cores on our machines
 WORKERS ?= 2
 
-.PHONY: setup demo test test-slow bench lint clean
+.PHONY: setup demo test test-slow regress bench lint clean
 
 setup: $(STAMP)
 
@@ -28,10 +28,16 @@ test: setup
 test-slow: setup
 	$(BIN)/python -m pytest -q -n $(WORKERS) -m slow
 
+# every canonical scenario of results/baselines/regress.yaml against its baseline
+regress: setup
+	$(BIN)/marsyard regress
+
 bench: setup
 	$(BIN)/python -m sim.bench scenarios/quickstart.yaml --out results/bench
 	$(BIN)/python -m sim.bench scenarios/etna_two_rovers.yaml --variants no_depth_truth --out results/bench/etna
 	$(BIN)/python -m comms.bench --out results/bench/comms.json
+	$(BIN)/python -m slam.bench --out results/bench/graph.json
+	$(BIN)/python -m sim.batch_bench --out results/bench/batch.json
 
 lint: setup
 	$(BIN)/ruff check sim slam comms tests

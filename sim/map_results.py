@@ -2,14 +2,15 @@
 
 ::
 
-    maps/<robot>.ply            global point cloud of the robot's submaps (binary PLY, map frame):
-                                x y z, grey intensity, obstacle flag, submap index
+    maps/<robot>.ply            global point cloud of the robot's map (binary PLY, map frame):
+                                x y z, grey intensity, obstacle flag, robot number, submap index
     maps/<robot>.voxels         merged log-odds voxel grid (``slam.voxels.VoxelGrid.to_bytes``)
     maps/<robot>.occupied.ply   centres of its occupied voxels (map frame)
     map_topdown.png             per robot: map points by height, obstacles, submap origins, true path
 
-The map frame is the robot's first local frame (gravity-aligned start pose); without
-the graph (issue 6) the submaps are placed by chaining the filter's frame switches.
+The map frame is the robot's first local frame (gravity-aligned start pose). With the
+graph the map holds every submap the robot has, its peers' included, placed by its
+graph; without it, its own submaps placed by chaining the filter's frame switches.
 ``metrics.json`` gets ``robots.<name>.map``: submap count, sizes and partition reasons,
 map size, ``T_world_map`` (from the true start pose, for evaluation only) and the map
 quality of :mod:`sim.map_evaluation` in the world frame.
@@ -30,17 +31,24 @@ from slam.globalmap import GlobalMap
 
 def compose(onboard) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any]:
     """The robot's global map from its finished submaps and its active one: poses by
-    frame index, points, obstacle flags, intensities, submap labels and the voxel grid."""
+    submap key, points, obstacle flags, intensities, submap labels and the voxel grid.
+    With the graph, the team's map: every submap the robot holds (its peers' included)
+    on the graph's submap origins; without it, its own submaps on its filter's chained
+    frame switches."""
     mapper = onboard.mapper
-    frames = onboard.estimator.frame_origins  # T_map_frame of every local frame: submap origins
     cfg = onboard.slam_cfg.mapping
     gmap = GlobalMap(point_resolution_m=cfg.point_resolution_m, voxel_resolution_m=cfg.voxel_resolution_m)
+    if onboard.exchange:
+        placed, current = onboard.agent.placed_submaps(), onboard.agent.active_submap()
+    else:
+        frames = onboard.estimator.frame_origins  # T_map_frame of every local frame: submap origins
+        placed = [(s, frames[s.frame_index]) for s in mapper.submaps]
+        active = mapper.builder.current()
+        current = (active, frames[active.frame_index]) if active.images else None
     poses = {}
-    for submap in mapper.submaps:
+    for submap, origin in placed:
         gmap.set_submap(submap)
-        poses[submap.key] = frames[submap.frame_index]
-    active = mapper.builder.current()
-    current = (active, frames[active.frame_index]) if active.images else None
+        poses[submap.key] = origin
     points, obstacle, intensity, labels = gmap.compose(poses, current=current)
     voxels = gmap.voxel_grid(poses, current=current)
     return poses, points, obstacle, intensity, labels, voxels
@@ -61,6 +69,7 @@ def map_section(out: Path, name: str, log, onboard, terrain: Terrain, recorder=N
         "finished_submaps": len(mapper.submaps),
         "partitions": {str(r): reasons.count(r) for r in sorted(set(reasons))},
         "submap_bytes": {"mean": float(np.mean(sizes)), "max": int(max(sizes))} if sizes else None,
+        "peer_submaps_placed": sum(robot != name for robot, _ in poses),
         "images_integrated": mapper.images,
         "points": len(points),
         "obstacle_points": int(obstacle.sum()),
@@ -69,7 +78,7 @@ def map_section(out: Path, name: str, log, onboard, terrain: Terrain, recorder=N
     }
     maps = out / "maps"
     maps.mkdir(parents=True, exist_ok=True)
-    write_ply(maps / f"{name}.ply", points, {"intensity": intensity, "obstacle": obstacle.astype(np.uint8), "submap": labels[:, 1].astype(np.uint16)})
+    write_ply(maps / f"{name}.ply", points, {"intensity": intensity, "obstacle": obstacle.astype(np.uint8), "robot": labels[:, 0].astype(np.uint8), "submap": labels[:, 1].astype(np.uint16)})
     (maps / f"{name}.voxels").write_bytes(voxels.to_bytes())
     write_ply(maps / f"{name}.occupied.ply", voxels.occupied_centers(), {})
     if len(points) == 0:

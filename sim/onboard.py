@@ -142,7 +142,7 @@ class SlamLog:
 
     t: list[float] = field(default_factory=list)
     pose: list[np.ndarray] = field(default_factory=list)  # 4x4 in the robot's map (first submap origin)
-    beliefs: dict[str, list[tuple[float, np.ndarray]]] = field(default_factory=dict)  # peer -> (t, pose in this map)
+    beliefs: dict[str, list[tuple[float, float, np.ndarray]]] = field(default_factory=dict)  # peer -> (t, t of the estimate, pose in this map)
 
 
 class OnboardStack:
@@ -339,4 +339,4 @@ class OnboardStack:
         for peer in self.agent.peers:
             belief = self.agent.belief(peer)
             if belief is not None:
-                slog.beliefs.setdefault(peer, []).append((now, belief))
+                slog.beliefs.setdefault(peer, []).append((now, *belief))

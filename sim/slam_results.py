@@ -4,8 +4,8 @@ The SLAM trajectory of a robot is what it believed about itself at each moment, 
 graph's submap origin composed with its filter pose (eq. 4.6), never re-optimised
 afterwards, in its map frame (its first submap origin = its filter's first frame, so
 the filter-only and SLAM trajectories share ground truth). A robot's beliefs about its
-peers are compared as relative poses (frame-independent). Detections are compared with
-the true relative pose at their capture time.
+peers are compared in its map frame, whose true pose is its true start frame (the filter's
+first frame). Detections are compared with the true relative pose at their capture time.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def slam_section(
                 sigmas.append(2 * np.sqrt(np.diag(R @ cov[3:, 3:] @ R.T)))  # axis-aligned 2-sigma extents
         colours = {k: tuple(int(255 * c) for c in to_rgb(v)) for k, v in FACTOR_COLOURS.items()}
         recorder.log_graph(name, edges, colours, np.asarray(origins).reshape(-1, 3), np.asarray(sigmas).reshape(-1, 3))
-    section["beliefs"] = _beliefs(name, slog, gt_world)
+    section["beliefs"] = _beliefs(slog, gt_world, T_world_start)
     section["graph"] = _graph_metrics(agent)
     section["detections"] = _detection_metrics(name, agent, gt_world, landmark_world)
     section["_plot"] = {"edges": edges}
@@ -94,30 +94,30 @@ def _h(p: np.ndarray) -> np.ndarray:
     return np.append(np.asarray(p, float), 1.0)
 
 
-def _beliefs(name: str, slog, gt_world) -> dict[str, Any]:
-    """Relative pose error of this robot's belief about each peer (position and yaw of
-    the peer in this robot's body frame, estimate against truth)."""
-    own = dict(zip(slog.t, slog.pose))
-    t_own, X_own = gt_world[name]
+def _beliefs(slog, gt_world, T_world_map: np.ndarray) -> dict[str, Any]:
+    """This robot's belief about each peer: the peer's pose at the time of its latest
+    estimate, in this robot's map, against truth at that time (what the graph knows),
+    and against the peer's true pose at the moment of the belief (what the robot would
+    act on, including the age of the estimate)."""
     out = {}
     for peer, samples in sorted(slog.beliefs.items()):
         t_peer, X_peer = gt_world[peer]
-        trans, yaw = [], []
-        for t, B in samples:
-            A = own.get(t)
-            if A is None:
-                continue
-            rel_est = np.linalg.solve(A, B)
-            rel_true = np.linalg.solve(_truth_at(t_own, X_own, t), _truth_at(t_peer, X_peer, t))
-            trans.append(np.linalg.norm(rel_est[:3, 3] - rel_true[:3, 3]))
-            yaw.append(abs(evaluation.wrap(evaluation.yaw_of(rel_est[:3, :3]) - evaluation.yaw_of(rel_true[:3, :3]))))
-        if trans:
-            out[peer] = {
-                "known_since_s": float(samples[0][0]),
-                "samples": len(trans),
-                "position_error_m": _stats(np.asarray(trans)),
-                "yaw_error_deg": _stats(np.degrees(yaw)),
-            }
+        err, yaw, err_now, age = [], [], [], []
+        for t, t_est, B in samples:
+            true = np.linalg.solve(T_world_map, _truth_at(t_peer, X_peer, t_est))
+            err.append(np.linalg.norm(B[:3, 3] - true[:3, 3]))
+            yaw.append(abs(evaluation.wrap(evaluation.yaw_of(B[:3, :3]) - evaluation.yaw_of(true[:3, :3]))))
+            now = np.linalg.solve(T_world_map, _truth_at(t_peer, X_peer, t))
+            err_now.append(np.linalg.norm(B[:3, 3] - now[:3, 3]))
+            age.append(t - t_est)
+        out[peer] = {
+            "known_since_s": float(samples[0][0]),
+            "samples": len(samples),
+            "position_error_m": _stats(np.asarray(err)),
+            "yaw_error_deg": _stats(np.degrees(yaw)),
+            "position_error_now_m": _stats(np.asarray(err_now)),
+            "estimate_age_s": _stats(np.asarray(age)),
+        }
     return out
 
 
@@ -208,7 +208,8 @@ def plot_slam(robots_metrics: dict[str, Any], paths_world: dict[str, np.ndarray]
         ax.set_title(f"{name}'s graph: {g['nodes']} nodes, " + ", ".join(f"{k} {v}" for k, v in sorted(g["factors"].items())), fontsize=9)
         ax.set_aspect("equal")
         ax.set_xlabel("x [m] (world, via true start)")
-        ax.legend(fontsize=7, loc="best")
+        if seen:
+            ax.legend(fontsize=7, loc="best")
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)

@@ -142,7 +142,7 @@ class Agent:
         self.buffer = PoseBuffer(name, params.buffer_period_s, params.buffer_horizon_s)
         self.stats = AgentStats()
         self.detections: list[DetectionRecord] = []
-        self.peer_submaps: dict[tuple[str, int], bytes] = {}
+        self.peer_submaps: dict[tuple[str, int], Submap] = {}
         self.peer_pose: dict[str, PoseEstimate] = {}  # latest periodic estimate of each peer
         self.peer_switches: dict[str, dict[int, np.ndarray]] = defaultdict(dict)  # robot -> index_from -> T (own too)
         self.marginals: dict[tuple[str, int], np.ndarray] = {}
@@ -276,7 +276,7 @@ class Agent:
             return []
         if isinstance(body, SubmapMessage):
             if body.robot != self.name:
-                self.peer_submaps[(body.robot, body.index)] = body.data
+                self.peer_submaps[(body.robot, body.index)] = Submap.from_bytes(body.data)
             return []
         # a detection or landmark observation
         pose = body.detector_pose
@@ -350,16 +350,32 @@ class Agent:
         S = self._origin(self.name, f.frame_index, self.peer_switches[self.name])
         return None if S is None else S @ f.pose()
 
-    def belief(self, robot: str) -> np.ndarray | None:
-        """Where this robot believes ``robot`` is, in its own map: the peer's latest pose
-        estimate on its optimised submap origin; None until the graph connects them."""
+    def belief(self, robot: str) -> tuple[float, np.ndarray] | None:
+        """Where this robot believes ``robot`` was at the time of its latest pose estimate
+        (returned with it), in this robot's map: that estimate on the peer's optimised
+        submap origin; None until the graph connects them."""
         pose = self.peer_pose.get(robot)
         if pose is None:
             return None
         S = self._origin(robot, pose.frame_index, self.peer_switches[robot])
-        return None if S is None else S @ pose.T_frame_body
+        return None if S is None else (pose.t, S @ pose.T_frame_body)
 
-    def submap(self, robot: str, index: int) -> Submap | None:
-        """A finished submap of a peer this robot received."""
-        data = self.peer_submaps.get((robot, index))
-        return None if data is None else Submap.from_bytes(data)
+    def placed_submaps(self) -> list[tuple[Submap, np.ndarray]]:
+        """Every finished submap this robot holds, its own and its peers', with its origin
+        in this robot's map from the graph (thesis 5.2.2); peers' submaps only once the
+        graph connects them."""
+        out = []
+        own = [(s, self.name) for s in self.mapper.submaps] if self.mapper is not None else []
+        for submap, robot in own + [(s, r) for (r, _), s in sorted(self.peer_submaps.items())]:
+            S = self._origin(robot, submap.frame_index, self.peer_switches[robot])
+            if S is not None:
+                out.append((submap, S))
+        return out
+
+    def active_submap(self) -> tuple[Submap, np.ndarray] | None:
+        """This robot's submap under construction with its origin, if it has images."""
+        if self.mapper is None or not self.mapper.builder.images:
+            return None
+        active = self.mapper.builder.current()
+        S = self._origin(self.name, active.frame_index, self.peer_switches[self.name])
+        return None if S is None else (active, S)
