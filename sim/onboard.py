@@ -97,6 +97,7 @@ def agent_params(cfg: SlamConfig) -> AgentParams:
         detection_interval_s=d.min_interval_s,
         max_detection_distance_m=d.max_distance_m,
         max_ambiguity=d.max_ambiguity,
+        max_target_tilt_rad=math.radians(d.max_tilt_deg),
         pose_period_s=g.pose_period_s,
         buffer_horizon_s=g.pose_buffer_s,
         covariance_period_s=g.covariance_period_s,

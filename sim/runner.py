@@ -213,8 +213,9 @@ class Run:
                 T[:3, 3] = spec.pos
                 markers.append(TeamMarker(spec.tag_id, spec.size_m, robot=robot.name, T_body_marker=T))
         lander = self.terrain.lander
-        if lander is not None:
-            markers.append(TeamMarker(lander.marker.tag_id, lander.marker.size_m, landmark=lander.marker.tag_id))
+        if lander is not None:  # the landmark frame is the tag's; its up is the lander's z
+            up = Rotation.from_quat(lander.marker.quat, scalar_first=True).as_matrix().T[:, 2]
+            markers.append(TeamMarker(lander.marker.tag_id, lander.marker.size_m, landmark=lander.marker.tag_id, up=up))
         return markers
 
     def _settle(self, robots: list[Robot]) -> None:

@@ -323,6 +323,9 @@ class DetectionConfig(StrictModel):
     )
     min_interval_s: NonNegFloat = Field(2.0, description="at most one detection of each target per interval")
     max_distance_m: PositiveFloat = Field(6.0, description="markers farther than this are not used")
+    max_tilt_deg: float = Field(
+        30.0, gt=0, le=90, description="of PnP's two solutions the one with the target closest to upright, if tilted at most this"
+    )
     max_ambiguity: float = Field(
         0.7, gt=0, le=1.0, description="PnP's best over second-best reprojection error at most this (near 1 the planar pose is ambiguous)"
     )

@@ -57,17 +57,39 @@ KIND_SUBMAP = "submap"
 @dataclass(frozen=True)
 class TeamMarker:
     """A marker the team knows (calibrated, thesis 4.2.2): on a robot (``T_body_marker``)
-    or defining a landmark (the landmark frame is the marker frame)."""
+    or defining a landmark (the landmark frame is the marker frame); ``up``: the target
+    frame's axis that points up when it stands level (body z on robots)."""
 
     tag_id: int
     size_m: float
     robot: str | None = None
     landmark: int | None = None
-    T_body_marker: np.ndarray = field(default_factory=lambda: np.eye(4))
+    T_body_marker: np.ndarray = field(default_factory=lambda: np.eye(4))  # the target frame's marker
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # the target's up axis, in its frame
 
     def __post_init__(self):
         if (self.robot is None) == (self.landmark is None):
             raise ValueError(f"marker {self.tag_id}: give exactly one of robot and landmark")
+
+
+def upright_solution(
+    candidates: tuple[np.ndarray | None, ...], marker: TeamMarker, T_body_cam: np.ndarray, T_frame_body: np.ndarray, max_tilt_rad: float
+) -> np.ndarray | None:
+    """The planar pose ambiguity (thesis 6.2.1) resolved by gravity: of PnP's solutions
+    ``T_cam_marker``, the one whose target stands closest to upright in the detecting
+    robot's gravity-aligned local frame (its pose ``T_frame_body``), if tilted at most
+    ``max_tilt_rad``. Robots drive upright and landmarks stand still, so a mirrored
+    solution shows as a tilted target."""
+    up = T_frame_body[:3, :3].T[:, 2]  # gravity's up in the detecting robot's body frame
+    best, best_tilt = None, math.inf
+    for T_cam_marker in candidates:
+        if T_cam_marker is None:
+            continue
+        R_body_target = (T_body_cam @ T_cam_marker @ np.linalg.inv(marker.T_body_marker))[:3, :3]
+        tilt = math.acos(float(np.clip(up @ (R_body_target @ marker.up), -1.0, 1.0)))
+        if tilt < best_tilt:
+            best, best_tilt = T_cam_marker, tilt
+    return best if best_tilt <= max_tilt_rad else None
 
 
 @dataclass(frozen=True)
@@ -77,10 +99,12 @@ class AgentParams:
     detection_interval_s: float = 2.0  # at most one detection of a target per interval
     max_detection_distance_m: float = 6.0
     max_ambiguity: float = 0.7  # PnP: best / second-best reprojection error at most this (1: ambiguous)
+    max_target_tilt_rad: float = math.radians(30.0)  # a detected target tilted more is a mirrored PnP solution
     pose_period_s: float = 1.0  # periodic pose broadcast
     buffer_period_s: float = 0.05
     buffer_horizon_s: float = 900.0
     covariance_period_s: float = 10.0  # marginals of the latest submap origins (for the matcher)
+    join_iterations: int = 5  # extra iSAM2 iterations when a robot joins the graph
 
 
 @dataclass(frozen=True)
@@ -225,8 +249,14 @@ class Agent:
             if own is None:
                 self.stats.detections_rejected["no own pose"] += 1
                 continue
+            T_cam_marker = upright_solution(
+                (det.T_cam_marker, det.T_cam_marker_alt), marker, T_body_cam, own.T_frame_body, self.params.max_target_tilt_rad
+            )
+            if T_cam_marker is None:
+                self.stats.detections_rejected["not upright"] += 1
+                continue
             cov_marker = detection_covariance(self.params.uncertainty, det.distance_m)
-            T, cov = relative_pose(T_body_cam, det.T_cam_marker, marker.T_body_marker, cov_marker)
+            T, cov = relative_pose(T_body_cam, T_cam_marker, marker.T_body_marker, cov_marker)
             msg = DetectionMessage(own, T, cov, marker.robot, marker.landmark, det.tag_id, det.distance_m)
             self._last_detection[target] = t
             self.stats.detections_used += 1
@@ -306,7 +336,10 @@ class Agent:
     def optimize(self, now: float) -> UpdateStats:
         """One iSAM2 step with what arrived; every ``covariance_period_s`` also the marginal
         covariances of each connected robot's latest submap origin."""
+        connected = len(self.graph.connected_robots())
         stats = self.graph.update()
+        if len(self.graph.connected_robots()) > connected:  # a robot joined with its backlog: converge
+            stats = self.graph.update(extra_iterations=self.params.join_iterations)
         self.stats.graph_updates.append(stats)
         self.dirty = False
         if now - self._last_covariance_t >= self.params.covariance_period_s:

@@ -1,4 +1,5 @@
-"""SLAM messages as bytes (thesis 3.3) and the pose buffer (thesis 4.2.2)."""
+"""SLAM messages as bytes (thesis 3.3), the pose buffer (thesis 4.2.2) and the gravity
+check on PnP's planar ambiguity (thesis 6.2.1)."""
 
 import numpy as np
 import pytest
@@ -99,3 +100,22 @@ def test_pose_buffer_interpolates_within_a_frame_and_never_across_a_switch():
     assert buf.at(1.0) is None  # beyond the horizon
     with pytest.raises(ValueError, match="not after"):
         buf.add(1.0, 1, np.eye(4), np.eye(6))
+
+
+def test_the_mirrored_pnp_solution_is_recognised_by_gravity():
+    from slam.agent import TeamMarker, upright_solution
+    from slam.lie import rot_zyx
+
+    # a rover's mast marker tilted back 35 deg, seen by a robot standing 10 deg rolled
+    T_body_marker = se3(rot_zyx(0, np.radians(-55), 0) @ rot_zyx(0, 0, np.pi), [0.1, 0, 0.5])
+    marker = TeamMarker(3, 0.15, robot="lru2", T_body_marker=T_body_marker)
+    T_frame_body = se3(rot_zyx(np.radians(10), 0, 0.3), [1, 2, 0])
+    T_body_cam = se3(rot_zyx(-np.pi / 2, 0, -np.pi / 2), [0.2, 0, 1.0])  # looking forward
+    # truth: the target stands level 3 m ahead, turned towards the detector
+    T_frame_target = se3(rot_zyx(0, 0, 0.3 + np.pi), T_frame_body[:3, 3] + [3 * np.cos(0.3), 3 * np.sin(0.3), 0])
+    T_cam_marker = np.linalg.solve(T_frame_body @ T_body_cam, T_frame_target @ T_body_marker)
+    mirrored = T_cam_marker @ se3(so3_exp([0, 0.7, 0]), [0, 0, 0])  # flipped by 40 deg about its (horizontal) y axis
+    max_tilt = np.radians(30)
+    assert upright_solution((mirrored, T_cam_marker), marker, T_body_cam, T_frame_body, max_tilt) is T_cam_marker
+    assert upright_solution((T_cam_marker, None), marker, T_body_cam, T_frame_body, max_tilt) is T_cam_marker
+    assert upright_solution((mirrored, None), marker, T_body_cam, T_frame_body, max_tilt) is None
