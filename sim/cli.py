@@ -113,7 +113,8 @@ def run(
         console.print(line)
     if failed:
         err_console.print(f"[bold red]run failed[/]: {metrics['error']} (traceback in {out / 'error.txt'}; partial results kept)")
-    console.print(f"\nresults in [bold]{out}/[/]: metrics.json, topdown.png, filter_error.png, map_topdown.png, maps/, trajectories/, lanes.csv")
+    files = "metrics.json, topdown.png, filter_error.png, slam.png, map_topdown.png, maps/, trajectories/, lanes.csv"
+    console.print(f"\nresults in [bold]{out}/[/]: {files}")
     if sc.output.recording:
         console.print(f"look at the run: open {out / 'topdown.png'}; replay it with `rerun {out / 'recording.rrd'}`")
     if failed:

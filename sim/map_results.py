@@ -78,7 +78,9 @@ def map_section(out: Path, name: str, log, onboard, terrain: Terrain, recorder=N
     }
     maps = out / "maps"
     maps.mkdir(parents=True, exist_ok=True)
-    write_ply(maps / f"{name}.ply", points, {"intensity": intensity, "obstacle": obstacle.astype(np.uint8), "robot": labels[:, 0].astype(np.uint8), "submap": labels[:, 1].astype(np.uint16)})
+    fields = {"intensity": intensity, "obstacle": obstacle.astype(np.uint8)}
+    fields |= {"robot": labels[:, 0].astype(np.uint8), "submap": labels[:, 1].astype(np.uint16)}
+    write_ply(maps / f"{name}.ply", points, fields)
     (maps / f"{name}.voxels").write_bytes(voxels.to_bytes())
     write_ply(maps / f"{name}.occupied.ply", voxels.occupied_centers(), {})
     if len(points) == 0:

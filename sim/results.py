@@ -349,6 +349,13 @@ def _filter_summary(f: dict[str, Any] | None) -> str:
     return f"; filter final error {f['final_error_m']:.2f} m" + (f" ({pct:.2f} % of distance)" if pct is not None else "")
 
 
+def _slam_summary(s: dict[str, Any] | None) -> str:
+    if not s or "final_error_m" not in s:
+        return ""
+    lc = s["graph"]["loop_closures"]
+    return f"; SLAM final error {s['final_error_m']:.2f} m, loop closures " + ", ".join(f"{k} {v}" for k, v in lc.items())
+
+
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
     """Short human summary of a run for the CLI."""
     rt = metrics["runtime"]
@@ -364,6 +371,7 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             + (f", {route['failed']} failed" if route["failed"] else "")
             + (f"; {stereo} (2-6 m)" if stereo else "")
             + _filter_summary(m.get("filter"))
+            + _slam_summary(m.get("slam"))
         )
     return lines
 
