@@ -34,8 +34,9 @@ from slam.graph import GraphParams, Topology
 from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
 from slam.markers import UncertaintyModel
+from slam.matcher import MatcherParams, MatchMode
 from slam.obstacles import ObstacleParams
-from slam.stereo import DEFAULT_MIN_DEPTH_M, StereoCalibration
+from slam.stereo import DEFAULT_MIN_DEPTH_M, StereoCalibration, depth_error, max_depth_for_error
 from slam.submap import SubmapParams
 from slam.vo import StereoVO, VoResult
 
@@ -88,10 +89,30 @@ def local_mapper(robot: str, calib: StereoCalibration, cfg: MappingConfig) -> Lo
     return LocalMapper(robot, calib, obstacles, submaps)
 
 
-def agent_params(cfg: SlamConfig) -> AgentParams:
+def matcher_params(cfg: SlamConfig, calib: StereoCalibration, seed: int) -> MatcherParams | None:
+    """Submap matching from ``slam.matching``; eq. 6.3's stereo error at ``p_z`` (default:
+    the depth where eq. 5.2c reaches the submaps' far cut, ``mapping.max_depth_error_m``)."""
+    m = cfg.matching
+    if not (m.enabled and cfg.mapping.enabled and cfg.graph.enabled):
+        return None
+    p_z = m.stereo_error_depth_m or max_depth_for_error(calib, cfg.mapping.max_depth_error_m)
+    return MatcherParams(
+        mode=MatchMode(m.mode),
+        min_overlap_m2=m.min_overlap_m2,
+        stereo_error_m=float(depth_error(p_z, calib)),
+        sigma_bound=m.sigma_bound,
+        descriptor_radius_m=m.descriptor_radius_m,
+        max_descriptor_distance=m.max_descriptor_distance,
+        max_icp_rmse_m=m.max_icp_rmse_m,
+        seed=seed,
+    )
+
+
+def agent_params(cfg: SlamConfig, matching: MatcherParams | None = None) -> AgentParams:
     """The agent's parameters from the scenario's ``slam`` section."""
     g, d = cfg.graph, cfg.detections
     return AgentParams(
+        matching=matching,
         graph=GraphParams(topology=Topology(g.topology), cauchy_c=g.cauchy_c),
         uncertainty=UncertaintyModel(d.uncertainty),
         detection_interval_s=d.min_interval_s,
@@ -172,11 +193,14 @@ class OnboardStack:
         )
         self.mapper = local_mapper(robot.name, calibration(self.vo_rig), mapping) if mapping.enabled else None
         team = [r.name for r in scenario.robots]
-        self.agent = Agent(robot.name, team, markers, self.estimator, self.mapper, agent_params(cfg))
+        seed = int(np.random.SeedSequence([scenario.seed, team.index(robot.name), 6]).generate_state(1)[0])
+        matching = matcher_params(cfg, calibration(self.vo_rig), seed)
+        self.agent = Agent(robot.name, team, markers, self.estimator, self.mapper, agent_params(cfg, matching))
         self.exchange = cfg.graph.enabled
         self.detect_markers = cfg.graph.enabled and cfg.detections.enabled
         self.network: Network | None = None
         self._graph_queued = False
+        self._matching_queued = False
         self.partitions: list[tuple[float, str]] = []  # (t, reason) of each new submap
         self._depth: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (depth, left image) until its VO is applied
         self._switch_pending = False
@@ -200,6 +224,29 @@ class OnboardStack:
                 else:
                     self.network.send(self.robot.name, m.to, m.kind, m.payload)
         self._schedule_graph()
+        self._schedule_matching()
+
+    def _schedule_matching(self) -> None:
+        """Submap matching (thesis 6.1) as one background job at a time: ``pairing`` when
+        submaps arrived or a loop closure changed the graph, else ``matching`` of the
+        best queued pair, announced to the team when the job starts."""
+        matcher = self.agent.matcher
+        if matcher is None or self._matching_queued or not matcher.has_work:
+            return
+        self._matching_queued = True
+        if matcher.pairing_due:
+            self.lane.submit("pairing", work=self.agent.pair_submaps, on_done=self._matching_done, priority=Priority.BACKGROUND)
+        else:
+            self.lane.submit("matching", work=lambda: self._match(self.lane.env.now), on_done=self._matching_done, priority=Priority.BACKGROUND)
+
+    def _match(self, now: float) -> list[Outgoing]:
+        announce, cand = self.agent.begin_match()
+        self._send(announce)
+        return [] if cand is None else self.agent.finish_match(cand, now)[0]
+
+    def _matching_done(self, out, _t: float) -> None:
+        self._matching_queued = False
+        self._send(out if isinstance(out, list) else [])
 
     def _deliver(self, delivery: Delivery) -> None:
         payload = delivery.message.payload

@@ -34,7 +34,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import LightSource
 
-from sim import evaluation, map_results, slam_results
+from sim import evaluation, loop_closure_results, map_results, slam_results
 from sim.runner import Run
 from sim.scenario import Scenario, dump_scenario
 
@@ -108,6 +108,7 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
     _write_csv(out / "comms_links.csv", run.network.link_table())
     comms = run.network.to_metrics()
     comms["raw_equivalent_Bps"] = run.raw_equivalent_load()
+    loop_closures = _guarded(out, "loop closure evaluation", loop_closure_results.loop_closure_section, run, gt_world, landmark_world)
     metrics = {
         "scenario": run.scenario.name,
         "seed": run.scenario.seed,
@@ -116,6 +117,7 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
         "runtime": runtime_metrics(run),
         "robots": robots_metrics,
         "comms": comms,
+        "loop_closures": loop_closures,
     }
     if run.scenario.output.topdown_png:
         plot_topdown(run, out / "topdown.png")

@@ -267,6 +267,10 @@ class StageCosts(StrictModel):
         0.01, description="obstacle classification and submap integration of one depth image (thesis 8.4: 0.01 s mean integration)"
     )
     detection_s: NonNegFloat = Field(0.01, description="AprilTag detection and PnP in one image (chosen; the thesis gives no figure)")
+    pairing_s: NonNegFloat = Field(0.39, description="keypoints of new submaps, the pair queue (thesis 8.1: 0.39 s keypoints and features per map)")
+    matching_s: NonNegFloat = Field(
+        5.47, description="one submap pair: feature matching 3.07 s, Hough voting 0.02 s, ICP 2.38 s (thesis 8.1)"
+    )
     messages_s: NonNegFloat = Field(1e-4, description="decoding a peer message and adding its factors")
     graph_s: NonNegFloat = Field(0.0017, description="one iSAM2 update (thesis 8.4: 1.7 ms mean)")
 
@@ -331,6 +335,21 @@ class DetectionConfig(StrictModel):
     )
 
 
+class MatchingConfig(StrictModel):
+    """Submap matching (thesis 6.1): intra- and inter-robot loop closures ``c``."""
+
+    enabled: bool = Field(True, description="match submaps in the background (needs slam.mapping and slam.graph)")
+    mode: Literal["4d", "6d"] = Field("4d", description="thesis 6.1.2: gravity-aligned 4D alignment and ICP, or 6D (8.1.2's baseline)")
+    min_overlap_m2: PositiveFloat = Field(2.0, description="eq. 6.2: xy overlap of the obstacle bounding boxes, widened by 2 relative sigmas")
+    stereo_error_depth_m: PositiveFloat | None = Field(
+        None, description="p_z of eq. 6.3 (pairs more certain than the stereo error there are skipped); default: the submaps' far cut"
+    )
+    sigma_bound: PositiveFloat = Field(2.0, description="hypotheses and results must lie within this many relative sigmas of the graph")
+    descriptor_radius_m: PositiveFloat = Field(0.4, description="FPFH radius (and of the known-space check around keypoints)")
+    max_descriptor_distance: float = Field(0.25, gt=0, le=1, description="L2 between unit FPFH descriptors, scaled to [0, 1]")
+    max_icp_rmse_m: PositiveFloat = Field(0.1, description="a refined match with a larger point-to-point RMSE is rejected")
+
+
 class SlamConfig(StrictModel):
     """The on-board estimation stack of every robot (thesis ch. 4)."""
 
@@ -348,6 +367,7 @@ class SlamConfig(StrictModel):
     mapping: MappingConfig = MappingConfig()
     graph: GraphConfig = GraphConfig()
     detections: DetectionConfig = DetectionConfig()
+    matching: MatchingConfig = MatchingConfig()
     initial_rest_s: PositiveFloat = Field(
         0.5,
         description="roll and pitch initialised from the mean accelerometer reading over this long before the route starts",

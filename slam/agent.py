@@ -34,10 +34,13 @@ from slam.graph import GraphParams, MultiRobotGraph, UpdateStats
 from slam.local_estimator import FrameSwitch, LocalEstimator
 from slam.local_mapper import LocalMapper
 from slam.markers import MarkerDetector, UncertaintyModel, detection_covariance, relative_pose
+from slam.matcher import Candidate, MatcherParams
 from slam.messages import (
     DetectionMessage,
     Envelope,
     FrameSwitchMessage,
+    LoopClosureMessage,
+    MatchAttemptMessage,
     MessageException,
     PoseEstimate,
     SubmapMessage,
@@ -46,12 +49,15 @@ from slam.messages import (
 )
 from slam.pose_buffer import PoseBuffer
 from slam.submap import Submap
+from slam.team_matcher import MatchRecord, TeamMatcher
 
 #: Network message kinds (comms policies) of each exchanged type.
 KIND_POSE = "pose"
 KIND_DETECTION = "detection"
 KIND_FRAME_SWITCH = "frame_switch"
 KIND_SUBMAP = "submap"
+KIND_MATCH_ATTEMPT = "match_attempt"
+KIND_LOOP_CLOSURE = "loop_closure"
 
 
 @dataclass(frozen=True)
@@ -105,6 +111,7 @@ class AgentParams:
     buffer_horizon_s: float = 900.0
     covariance_period_s: float = 10.0  # marginals of the latest submap origins (for the matcher)
     join_iterations: int = 5  # extra iSAM2 iterations when a robot joins the graph
+    matching: MatcherParams | None = None  # submap matching (thesis 6.1); None: off
 
 
 @dataclass(frozen=True)
@@ -138,6 +145,7 @@ class AgentStats:
     detections_used: int = 0
     detections_rejected: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     unanswerable: int = 0  # detections of this robot at a time its buffer no longer (or not yet) holds
+    duplicate_closures: int = 0  # loop closures of a pair already closed (matchers racing on two robots)
     graph_updates: list[UpdateStats] = field(default_factory=list)
     covariance_s: list[float] = field(default_factory=list)
 
@@ -179,6 +187,8 @@ class Agent:
         self._next_pose_t: float | None = None
         self._last_covariance_t = -math.inf
         self._detectors: dict[str, MarkerDetector] = {}
+        self.matcher = TeamMatcher(params.matching) if params.matching is not None else None
+        self._closed: set[tuple] = set()  # submap pairs with a loop closure in the graph
         self.graph.update()  # the prior on this robot's first submap origin: its map frame
 
     # ------------------------------------------------------------------ own sensors
@@ -204,6 +214,8 @@ class Agent:
         switch = self.estimator.frame_switch()
         finished = self.mapper.start_submap(t, switch.frame_index) if self.mapper is not None else None
         out = self._sync_switches()
+        if finished is not None and self.matcher is not None:
+            self.matcher.add_submap(finished)
         if finished is not None:
             out.append(self._outgoing(KIND_SUBMAP, SubmapMessage(self.name, finished.index, finished.to_bytes())))
         return out
@@ -306,7 +318,27 @@ class Agent:
             return []
         if isinstance(body, SubmapMessage):
             if body.robot != self.name:
-                self.peer_submaps[(body.robot, body.index)] = Submap.from_bytes(body.data)
+                submap = Submap.from_bytes(body.data)
+                self.peer_submaps[(body.robot, body.index)] = submap
+                if self.matcher is not None:
+                    self.matcher.add_submap(submap)
+            return []
+        if isinstance(body, MatchAttemptMessage):
+            if self.matcher is not None:
+                self.matcher.mark_attempted((body.robot_a, body.index_a), (body.robot_b, body.index_b))
+            return []
+        if isinstance(body, LoopClosureMessage):
+            pair = ((body.robot_a, body.index_a), (body.robot_b, body.index_b))
+            if self.matcher is not None:
+                self.matcher.mark_attempted(*pair)
+            if pair in self._closed:
+                self.stats.duplicate_closures += 1
+                return []
+            self._closed.add(pair)
+            if self.matcher is not None:
+                self.matcher.stale = True
+            graph.add_match(body.robot_a, body.frame_a, body.robot_b, body.frame_b, body.T_a_b, body.cov)
+            self.dirty = True
             return []
         # a detection or landmark observation
         pose = body.detector_pose
@@ -351,6 +383,30 @@ class Agent:
                     self.marginals[(robot, index)] = self.graph.marginal_covariance(robot, index)
             self.stats.covariance_s.append(time.perf_counter() - t0)
         return stats
+
+    # ------------------------------------------------------------------ submap matching
+
+    def pair_submaps(self) -> int:
+        """Pairing (thesis 6.1.1) with the graph's latest estimate: the number of queued pairs."""
+        return self.matcher.pair(self.graph) if self.matcher is not None else 0
+
+    def begin_match(self) -> tuple[list[Outgoing], Candidate | None]:
+        """The best queued pair (6.1.2), announced to the team before it is matched."""
+        cand = self.matcher.next_candidate() if self.matcher is not None else None
+        if cand is None:
+            return [], None
+        (ra, ia), (rb, ib) = cand.pair
+        return [self._outgoing(KIND_MATCH_ATTEMPT, MatchAttemptMessage(ra, ia, rb, ib))], cand
+
+    def finish_match(self, cand: Candidate, t: float) -> tuple[list[Outgoing], MatchRecord]:
+        """Match the pair: a loop closure for the team (and this robot's graph) on success."""
+        record = self.matcher.attempt(cand, t)
+        res = record.result
+        if not res.success:
+            return [], record
+        (ra, ia), (rb, ib) = cand.pair
+        msg = LoopClosureMessage(ra, ia, record.frame_a, rb, ib, record.frame_b, res.T_a_b, res.cov)
+        return [self._outgoing(KIND_LOOP_CLOSURE, msg)], record
 
     # ------------------------------------------------------------------ beliefs
 

@@ -50,6 +50,7 @@ import gtsam
 import numpy as np
 
 from slam.lie import se3_inv
+from slam.vo import adjoint
 
 Node = tuple[str, str, int | float]  # (kind "s" | "x" | "l", robot ("" for landmarks), index | time | landmark id)
 
@@ -343,6 +344,30 @@ class MultiRobotGraph:
         """6x6 ``[rotation, translation]`` marginal covariance of ``s[robot,index]`` from iSAM2."""
         node = ("s", _robot(robot, "robot"), _index(index, "index"))
         return self._isam.marginalCovariance(self._keys[node]) if node in self._known else None
+
+    def relative_covariances(self, pairs: list[tuple[tuple[str, int], tuple[str, int]]]) -> dict[tuple, np.ndarray]:
+        """6x6 covariances of ``s_a^-1 s_b`` for each pair ``((robot_a, index_a), (robot_b,
+        index_b))`` of submap origins in the estimate (thesis 6.1.1: the relative uncertainty
+        the thesis approximated by ``sqrt|Σ_a - Σ_b|``). One batch ``gtsam.Marginals`` of the
+        current estimate gives each pair's joint 12x12 covariance; with right perturbations,
+        ``s_a^-1 s_b`` is perturbed by ``ξ_b - Ad(T_ab^-1) ξ_a``. Pairs with an origin not in
+        the estimate are left out."""
+        nodes = {}
+        for pair in pairs:
+            keys = [("s", _robot(r, "robot"), _index(i, "index")) for r, i in pair]
+            if all(n in self._known for n in keys):
+                nodes[pair] = keys
+        if not nodes:
+            return {}
+        marginals = gtsam.Marginals(self.batch_graph(), self._estimate)
+        out = {}
+        for pair, (na, nb) in nodes.items():
+            ka, kb = self._keys[na], self._keys[nb]
+            joint = marginals.jointMarginalCovariance(gtsam.KeyVector([ka, kb])).fullMatrix()
+            T_ab = se3_inv(self._estimate.atPose3(ka).matrix()) @ self._estimate.atPose3(kb).matrix()
+            J = np.hstack([-adjoint(se3_inv(T_ab)), np.eye(6)])
+            out[pair] = J @ joint @ J.T
+        return out
 
     def connected_robots(self) -> list[str]:
         return sorted({robot for kind, robot, _ in self._known if kind != "l"})

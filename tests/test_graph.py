@@ -13,7 +13,8 @@ import pytest
 
 from slam.filter import switch_pose3_covariance
 from slam.graph import FactorType, GraphException, GraphParams, MultiRobotGraph, Topology
-from slam.lie import rot_z, rot_zyx, se3, se3_inv, so3_log
+from slam.lie import rot_z, rot_zyx, se3, se3_inv, so3_exp, so3_log
+from slam.vo import adjoint
 
 DT = 0.5
 COV_V = np.diag([0.004**2] * 3 + [0.03**2] * 3)  # a filter pose v
@@ -406,3 +407,20 @@ def test_outputs_describe_the_estimate():
     assert len(graph.update_times) == 2 and all(t > 0 for t in graph.update_times)
     assert graph.update().factors_added == 0 and len(graph.update_times) == 2  # nothing to do: iSAM2 not called
     assert graph.to_batch_values().size() == graph.node_count()
+
+
+def test_relative_covariance_of_submap_origins_from_the_joint_marginals():
+    """Thesis 6.1.1's relative uncertainty: along a chain s0 -> s1 -> s2 the covariance of
+    s0^-1 s2 is both switches' covariances composed, and of s1^-1 s2 the second's alone."""
+    g = MultiRobotGraph("a")
+    T1, T2 = se3(so3_exp([0, 0, 0.7]), [2.0, 1.0, 0.1]), se3(so3_exp([0, 0, -0.4]), [1.0, -1.0, 0.0])
+    C1, C2 = np.diag([1e-4, 1e-4, 4e-3, 0.01, 0.02, 0.005]), np.diag([1e-4, 1e-4, 1e-3, 0.04, 0.01, 0.002])
+    g.add_frame_switch("a", 0, 1.0, T1, C1)
+    g.add_frame_switch("a", 1, 2.0, T2, C2)
+    g.update()
+    pairs = [(("a", 1), ("a", 2)), (("a", 0), ("a", 2)), (("a", 0), ("a", 5))]
+    rel = g.relative_covariances(pairs)
+    np.testing.assert_allclose(rel[pairs[0]], C2, atol=1e-9)
+    Ad = adjoint(np.linalg.inv(T2))
+    np.testing.assert_allclose(rel[pairs[1]], Ad @ C1 @ Ad.T + C2, atol=1e-9)
+    assert pairs[2] not in rel  # s5 is not in the estimate

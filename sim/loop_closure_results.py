@@ -1,0 +1,147 @@
+"""Loop closures against ground truth (thesis 8.1.2, 8.1.3): every submap match a robot
+computed and every detection it made, compared with the true transform; counts per
+outcome; calibration of the predicted uncertainty (the share of errors within 1, 2
+and 3 predicted sigmas). Goes into ``metrics.json`` under ``loop_closures``.
+
+A submap origin's truth is the robot's true pose when the filter switched into that
+local frame (frame 0: the filter's start), gravity-aligned as the origins are (4.1.2).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+from sim import evaluation
+from slam.registration import yaw_of
+
+SIGMA_LEVELS = (1, 2, 3)
+
+
+def _truth_at(gt_t: np.ndarray, gt_world: np.ndarray, t: float) -> np.ndarray:
+    i = min(int(np.searchsorted(gt_t, t - 1e-9)), len(gt_t) - 1)
+    return gt_world[i]
+
+
+def origin_truth(onboard, gt_t: np.ndarray, gt_world: np.ndarray) -> dict[int, np.ndarray]:
+    """Frame index -> true world pose of that local frame's origin (gravity-aligned)."""
+    if not onboard.log.t:
+        return {}
+    out = {0: evaluation.gravity_aligned(_truth_at(gt_t, gt_world, onboard.log.t[0]))}
+    for s in onboard.estimator.switches:
+        out[s.frame_index] = evaluation.gravity_aligned(_truth_at(gt_t, gt_world, s.t))
+    return out
+
+
+def _rotation_deg(R: np.ndarray) -> float:
+    return math.degrees(math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def calibration(normalised: np.ndarray) -> dict[str, float]:
+    """Share of |error| / sigma at most 1, 2, 3 (a Gaussian: 68 / 95 / 99.7 % per component)."""
+    a = np.abs(np.asarray(normalised, float))
+    return {f"within_{k}_sigma": float(np.mean(a <= k)) for k in SIGMA_LEVELS} if a.size else {}
+
+
+def _stats(v) -> dict[str, float]:
+    v = np.asarray(v, float)
+    return {"median": float(np.median(v)), "p90": float(np.percentile(v, 90)), "max": float(v.max())} if v.size else {}
+
+
+def match_metrics(name: str, onboard, origins: dict[str, dict[int, np.ndarray]]) -> dict[str, Any] | None:
+    """This robot's own match attempts against the true relative transforms."""
+    matcher = onboard.agent.matcher
+    if matcher is None:
+        return None
+    records = matcher.records
+    reasons = Counter(r.result.reason for r in records if not r.result.success)
+    out: dict[str, Any] = {
+        "mode": matcher.params.mode.value,
+        "submaps_prepared": len(matcher.queue.prepared),
+        "submaps_unsuitable": dict(Counter(matcher.queue.unsuitable.values())),
+        "attempts": len(records),
+        "matches": sum(r.result.success for r in records),
+        "rejected": dict(reasons),
+        "duplicate_closures_ignored": onboard.agent.stats.duplicate_closures,
+    }
+    trans, yaw, rot, prior_trans, norm, rows = [], [], [], [], [], []
+    stages: dict[str, list[float]] = {}
+    for rec in records:
+        for stage, s in rec.result.timings.items():
+            stages.setdefault(stage, []).append(s)
+        res = rec.result
+        (ra, _), (rb, _) = res.a, res.b
+        Oa, Ob = origins.get(ra, {}).get(rec.frame_a), origins.get(rb, {}).get(rec.frame_b)
+        if not res.success or Oa is None or Ob is None:
+            continue
+        true = np.linalg.solve(Oa, Ob)
+        D = np.linalg.solve(true, res.T_a_b)  # T_true^-1 T: the right-perturbation error
+        e_t, e_yaw = float(np.linalg.norm(D[:3, 3])), abs(yaw_of(D[:3, :3]))
+        trans.append(e_t)
+        yaw.append(math.degrees(e_yaw))
+        rot.append(_rotation_deg(D[:3, :3]))
+        prior_trans.append(float(np.linalg.norm(rec.prior.T_a_b[:3, 3] - true[:3, 3])))
+        sigma = np.sqrt(np.diag(res.cov))
+        norm += list(D[:3, 3] / sigma[3:]) + [yaw_of(D[:3, :3]) / sigma[2]]
+        rows.append({"t": rec.t, "a": f"{ra}:{res.a[1]}", "b": f"{rb}:{res.b[1]}", "error_m": e_t, "yaw_error_deg": math.degrees(e_yaw)})
+    if trans:
+        out["translation_error_m"] = _stats(trans)
+        out["yaw_error_deg"] = _stats(yaw)
+        out["rotation_error_deg"] = _stats(rot)
+        out["graph_prior_error_m"] = _stats(prior_trans)  # how far the graph was before the match
+        out["calibration"] = calibration(np.asarray(norm))
+        out["matches_list"] = rows
+    out["stage_wall_s"] = {k: {"mean": float(np.mean(v)), "max": float(np.max(v)), "n": len(v)} for k, v in sorted(stages.items())}
+    return out
+
+
+def detection_calibration(
+    name: str, onboard, gt_world: dict[str, tuple[np.ndarray, np.ndarray]], landmark_world: np.ndarray | None
+) -> dict[str, Any]:
+    """Each detection's error in its own covariance's frame (right perturbation of the
+    target pose in the detector's body), per component over the predicted sigmas."""
+    t_own, X_own = gt_world[name]
+    norm, count = [], 0
+    for d in onboard.agent.detections:
+        A = _truth_at(t_own, X_own, d.t)
+        if d.target.startswith("landmark:"):
+            if landmark_world is None:
+                continue
+            target = landmark_world
+        else:
+            t_peer, X_peer = gt_world[d.target]
+            target = _truth_at(t_peer, X_peer, d.t)
+        true = np.linalg.solve(A, target)
+        D = np.linalg.solve(d.T_detector_target, true)  # T^-1 T_true = Exp(xi)
+        w = _rotvec(D[:3, :3])
+        xi = np.concatenate([w, D[:3, 3]])
+        norm += list(xi / np.sqrt(np.diag(d.cov)))
+        count += 1
+    return {"count": count, "calibration": calibration(np.asarray(norm))}
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    angle = math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
+    if angle < 1e-12:
+        return np.zeros(3)
+    return angle / (2 * math.sin(angle)) * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+
+
+def loop_closure_section(run, gt_world: dict[str, tuple[np.ndarray, np.ndarray]], landmark_world: np.ndarray | None) -> dict[str, Any] | None:
+    """``metrics.json`` ``loop_closures``: per robot its matches and detections, and team totals."""
+    onboards = {n: r.onboard for n, r in run.robots.items() if r.onboard is not None and r.onboard.exchange and n in gt_world}
+    if not onboards:
+        return None
+    origins = {n: origin_truth(ob, *gt_world[n]) for n, ob in onboards.items()}
+    robots = {}
+    for name, ob in onboards.items():
+        robots[name] = {"matches": match_metrics(name, ob, origins), "detections": detection_calibration(name, ob, gt_world, landmark_world)}
+    team = {
+        "attempts": sum((m["matches"] or {}).get("attempts", 0) for m in robots.values()),
+        "matches": sum((m["matches"] or {}).get("matches", 0) for m in robots.values()),
+        "detections": sum(m["detections"]["count"] for m in robots.values()),
+    }
+    return {"team": team, "robots": robots}

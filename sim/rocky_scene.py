@@ -1,0 +1,115 @@
+"""Submaps built from rendered stereo on sim.terrain's rocky terrain, for the matcher's
+tests and benchmark (``sim.match_bench``): a stereo head (LRU mast camera: b = 9 cm, 50.6 deg, 320x240,
+1.2 m up, 25 deg down) is moved along straight paths; each pair is rendered, matched
+by SGBM, classified (5.1.1) and integrated into a submap (5.1.2) with the true camera
+poses, so the submaps carry only stereo and discretisation errors. The submap origin
+is the gravity-aligned head pose at the path's start."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from functools import cached_property
+
+import mujoco
+import numpy as np
+from dm_control import mjcf
+
+from sim.camera_rig import StereoRig
+from sim.scenario import CameraConfig, TerrainConfig
+from sim.sensors import StereoRenderer
+from sim.terrain import add_terrain, generate_terrain
+from slam.obstacles import ObstacleParams, classify_depth
+from slam.stereo import StereoCalibration, StereoMatcher
+from slam.submap import Submap, SubmapBuilder, SubmapParams
+
+WIDTH, HEIGHT = 320, 240
+BASELINE_M, HFOV_DEG = 0.09, 50.6
+HEAD_HEIGHT_M, PITCH_DEG = 1.2, 25.0
+
+
+def _pose(R: np.ndarray, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def yaw_matrix(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class RockyScene:
+    """A 20 m terrain with ``rocks`` rocks and a mocap stereo head."""
+
+    def __init__(self, seed: int = 5, rocks: int = 300, size_m: float = 20.0):
+        cfg = TerrainConfig.model_validate(
+            {
+                "size_m": size_m,
+                "craters": {"count": 0},
+                "rocks": {"count": rocks, "diameter_m": [0.3, 1.0], "clearance_m": 0.0},
+                "texture": {"size_px": 1024},
+            }
+        )
+        self.terrain = generate_terrain(cfg, np.random.default_rng(seed), [((0.0, 0.0), 0.1)])
+        root = mjcf.RootElement(model="rocky")
+        add_terrain(root, self.terrain)
+        root.statistic.extent = size_m
+        glob = getattr(root.visual, "global")
+        glob.offwidth, glob.offheight = 640, 480
+        self.rig = StereoRig("head", "left", "right", BASELINE_M, HFOV_DEG, WIDTH, HEIGHT)
+        p = math.radians(PITCH_DEG)
+        look = np.array([math.cos(p), 0.0, -math.sin(p)])
+        x = np.array([0.0, -1.0, 0.0])
+        y = np.cross(-look, x)
+        head = root.worldbody.add("body", name="head", mocap=True)
+        for name, sign in ((self.rig.left_camera, -0.5), (self.rig.right_camera, 0.5)):
+            head.add("camera", name=name, pos=(sign * BASELINE_M * x).tolist(), xyaxes=[*x, *y], fovy=self.rig.vfov_deg)
+        self.model = mujoco.MjModel.from_xml_string(root.to_xml_string(), root.get_assets())
+        self.data = mujoco.MjData(self.model)
+        self.camera = CameraConfig(width=WIDTH, height=HEIGHT)
+        self.calibration = StereoCalibration.from_intrinsics(self.rig.intrinsics, BASELINE_M, WIDTH, HEIGHT)
+        self.stereo = StereoMatcher(self.calibration)
+        self._left = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, self.rig.left_camera)
+
+    @cached_property
+    def renderer(self) -> StereoRenderer:
+        return StereoRenderer(self.model, self.rig, self.camera)
+
+    def head_pose(self, xy, yaw: float) -> np.ndarray:
+        """Gravity-aligned head pose (world) at ``xy``, ``HEAD_HEIGHT_M`` above the terrain."""
+        z = float(self.terrain.height_at(*xy)) + HEAD_HEIGHT_M
+        return _pose(yaw_matrix(yaw), [xy[0], xy[1], z])
+
+    def view(self, T_world_head: np.ndarray):
+        """Grey left image, SGBM depth and the left camera's world pose (OpenCV axes)."""
+        q = np.zeros(4)
+        mujoco.mju_mat2Quat(q, T_world_head[:3, :3].ravel())
+        self.data.mocap_pos[0], self.data.mocap_quat[0] = T_world_head[:3, 3], q
+        mujoco.mj_forward(self.model, self.data)
+        frame = self.renderer.render(self.data)
+        depth = self.stereo.depth(frame.left, frame.right)
+        T_world_cam = _pose(self.data.cam_xmat[self._left].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0]), self.data.cam_xpos[self._left])
+        return frame.left, depth, T_world_cam
+
+    def submap(self, robot: str, index: int, start_xy, end_xy, images: int = 24, yaw_offset: float = 0.0) -> tuple[Submap, np.ndarray]:
+        """A submap of a straight drive from ``start_xy`` to ``end_xy`` (head looking along
+        the path, turned by ``yaw_offset``), and its true origin in the world."""
+        start, end = np.asarray(start_xy, float), np.asarray(end_xy, float)
+        yaw = math.atan2(*(end - start)[::-1]) + yaw_offset
+        origin = self.head_pose(start, yaw)
+        builder = SubmapBuilder(robot, SubmapParams(), self.calibration, frame_index=index)
+        inv = np.linalg.inv(origin)
+        for i in range(images):
+            xy = start + (end - start) * i / (images - 1)
+            image, depth, T_world_cam = self.view(self.head_pose(xy, yaw))
+            T_origin_cam = inv @ T_world_cam
+            classification = classify_depth(depth, self.calibration, T_origin_cam, ObstacleParams())
+            builder.integrate(depth, T_origin_cam, classification.pixel_obstacles, image, 0.2 * i)
+        submap = builder.finish(0.2 * images, index + 1)
+        return replace(submap, index=index), origin  # the builder numbers from 0
+
+    def close(self) -> None:
+        if "renderer" in self.__dict__:
+            self.renderer.close()
+

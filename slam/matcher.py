@@ -1,0 +1,474 @@
+"""Submap matching (thesis 6.1): keypoints and suitability of single submaps (6.1.1),
+pairing and prioritisation of submap pairs (eq. 6.1-6.4), and the pairwise matching
+pipeline (6.1.2): 3D descriptors, correspondences, Hough voting into hypotheses,
+RANSAC with the two-point gravity-aligned solver (eq. 6.5-6.7), plausibility checks,
+ICP restricted to x, y, z and yaw, and a covariance from the ICP residual. The 6D
+variant of 8.1.2 (3-point RANSAC and 6D ICP, 10 deg / 1 deg roll-pitch thresholds) is
+:attr:`MatchMode.SIX_D`.
+
+Choices where the thesis used PCL:
+
+- Descriptors are Open3D's FPFH (Rusu et al. 2009) on the full cloud, taken at the
+  cloud point nearest each keypoint and scaled to unit L2 norm; the thesis used
+  PCL's CSHOT, which no maintained Python library offers. FPFH describes the same
+  spherical neighbourhood (radius ``descriptor_radius_m``) by histograms of normal
+  angles. Normals are oriented to +z, which both gravity-aligned submaps share.
+- Hough voting follows Tombari and Di Stefano (2010), as PCL's ``Hough3DGrouping``:
+  every keypoint gets the local reference frame of SHOT (Tombari et al. 2010: the
+  eigenvectors of the distance-weighted neighbourhood scatter, signs towards the
+  majority of neighbours); each correspondence carries the vector from the model
+  keypoint to the model's reference point (the centroid of its keypoints) through the
+  two frames into the scene and votes for a position there. Peaks of the 3D vote
+  grid (``hough_bin_m``, at least ``hough_min_votes``) are the clusters; voting runs
+  in both directions (6.1.2, the asymmetry of translation and rotation).
+
+Only numpy, scipy and open3d (``slam`` stays free of simulator code).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import time
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from slam.registration import IcpResult, icp, off_line_count, ransac, roll_pitch
+from slam.submap import Submap, voxel_filter
+
+SubmapKey = tuple[str, int]  # (robot, submap index)
+PairKey = tuple[SubmapKey, SubmapKey]  # sorted
+
+
+class MatcherException(ValueError):
+    """Bad parameters or input to the matcher."""
+
+
+class MatchMode(StrEnum):
+    """Dimensionality of initial alignment and refinement (thesis 6.1.2, 8.1.2)."""
+
+    FOUR_D = "4d"  # 2-point gravity-aligned RANSAC and x, y, z, yaw ICP
+    SIX_D = "6d"  # 3-point SVD RANSAC and 6D ICP, roll/pitch checked afterwards
+
+
+@dataclass(frozen=True)
+class MatcherParams:
+    mode: MatchMode = MatchMode.FOUR_D
+    # suitability and keypoints (6.1.1)
+    min_points: int = 1000
+    min_obstacle_points: int = 100
+    keypoint_resolution_m: float = 0.1
+    min_known_fraction: float = 0.5  # of the voxels in the descriptor sphere (thesis 0.8; see docs/slam.md)
+    line_distance_m: float = 0.5
+    min_off_line_keypoints: int = 10
+    # pairing (eq. 6.1-6.4)
+    min_overlap_m2: float = 2.0
+    alpha: float = 0.125
+    stereo_error_m: float = 0.12  # right side of eq. 6.3 (thesis: LRU at 4 m); see docs/slam.md
+    # features and correspondences
+    descriptor_radius_m: float = 0.4
+    normal_radius_m: float = 0.2  # thesis r = 0.2 m for normals, frames and descriptors
+    nearest: int = 3  # most similar features per keypoint, both directions
+    max_descriptor_distance: float = 0.25  # L2 between unit descriptors over its range [0, sqrt 2] (thesis 0.5 for CSHOT)
+    # Hough voting and RANSAC
+    hough_bin_m: float = 0.3
+    hough_min_votes: int = 5
+    max_clusters: int = 8  # per voting direction, largest first
+    ransac_iterations: int = 100
+    ransac_inlier_m: float = 0.2
+    min_inliers: int = 6  # distinct keypoints on each side supporting a hypothesis
+    min_off_line_inliers: int = 3  # matched keypoints off the RANSAC line, in each submap
+    max_roll_pitch_initial_rad: float = math.radians(10.0)  # 6D only (8.1.2)
+    max_roll_pitch_final_rad: float = math.radians(1.0)  # 6D only (8.1.2)
+    sigma_bound: float = 2.0  # hypotheses must lie within this many relative sigmas of the graph
+    # refinement and acceptance
+    icp_max_distance_m: float = 0.25
+    icp_iterations: int = 40
+    icp_point_resolution_m: float = 0.1  # source cloud subsampling for the ICP
+    max_icp_rmse_m: float = 0.1
+    min_icp_pairs: int = 300
+    roll_pitch_sigma_rad: float = math.radians(0.5)  # 4D: the filter's roll/pitch uncertainty of the origins
+    seed: int = 0
+
+    def __post_init__(self):
+        try:
+            object.__setattr__(self, "mode", MatchMode(self.mode))
+        except ValueError:
+            raise MatcherException(f"mode must be one of {[m.value for m in MatchMode]}, got {self.mode!r}") from None
+        bad = [
+            f"{k}={v}" for k, v in vars(self).items() if isinstance(v, int | float) and not isinstance(v, bool) and (not math.isfinite(v) or v < 0)
+        ]
+        if bad:
+            raise MatcherException(f"matcher parameters must be finite and >= 0: {', '.join(bad)}")
+
+    @property
+    def dof(self) -> int:
+        return 4 if self.mode is MatchMode.FOUR_D else 6
+
+
+# ----------------------------------------------------------------------------- single submaps
+
+
+@dataclass
+class Keypoints:
+    """What the pairing thread precomputes per submap (6.1.1); features are added by the
+    matching thread when the submap is first in a pair (6.1.2)."""
+
+    key: SubmapKey
+    frame_index: int
+    points: np.ndarray  # (n, 3) keypoints in the submap frame
+    obstacle_xyz: np.ndarray  # (m, 3) obstacle keypoints before the known-space filter (bounding boxes)
+    cloud: np.ndarray  # (k, 3) the full point cloud
+    descriptors: np.ndarray | None = None  # (n, 33) unit FPFH
+    frames: np.ndarray | None = None  # (n, 3, 3) local reference frames, rows x, y, z
+    normals: np.ndarray | None = None  # (k, 3) of the cloud
+    tree: cKDTree | None = None  # of the cloud
+
+
+def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
+    """Suitability check and keypoints of one submap (6.1.1), or the reason it is
+    unsuitable: at least ``min_points`` points and ``min_obstacle_points`` obstacle
+    points; keypoints are the obstacle points filtered at ``keypoint_resolution_m``,
+    dropped where less than ``min_known_fraction`` of the voxels in the descriptor
+    sphere are known; at least ``min_off_line_keypoints`` keypoints must lie farther than
+    ``line_distance_m`` (xy) from a RANSAC line through them."""
+    pts = np.asarray(submap.points, dtype=float)
+    obstacle = np.asarray(submap.obstacle, dtype=bool)
+    if len(pts) < params.min_points:
+        return "too few points"
+    if obstacle.sum() < params.min_obstacle_points:
+        return "too few obstacle points"
+    kp, _, _ = voxel_filter(pts[obstacle], np.ones(int(obstacle.sum()), bool), np.zeros(int(obstacle.sum())), params.keypoint_resolution_m)
+    known = submap.voxels.known_fraction(kp, params.descriptor_radius_m)
+    points = kp[known >= params.min_known_fraction]
+    rng = np.random.default_rng([params.seed, submap.index, len(points)])
+    if off_line_count(points, params.line_distance_m, 100, rng) < params.min_off_line_keypoints:
+        return "keypoints line-like"
+    return Keypoints(submap.key, submap.frame_index, points, kp, pts)
+
+
+def _lrf(cloud: np.ndarray, tree: cKDTree, centers: np.ndarray, radius: float) -> np.ndarray:
+    """SHOT local reference frames (Tombari et al. 2010) at ``centers``: rows x, y, z."""
+    frames = np.tile(np.eye(3), (len(centers), 1, 1))
+    for i, (c, nb) in enumerate(zip(centers, tree.query_ball_point(centers, radius))):
+        if len(nb) < 5:
+            continue
+        d = cloud[nb] - c
+        w = radius - np.linalg.norm(d, axis=1)
+        M = (d * w[:, None]).T @ d / max(w.sum(), 1e-12)
+        _, vec = np.linalg.eigh(M)
+        x, z = vec[:, 2], vec[:, 0]
+        if np.sum(d @ x >= 0) < len(d) / 2:
+            x = -x
+        if np.sum(d @ z >= 0) < len(d) / 2:
+            z = -z
+        frames[i] = np.stack([x, np.cross(z, x), z])
+    return frames
+
+
+def compute_features(kp: Keypoints, params: MatcherParams) -> None:
+    """Normals of the cloud, FPFH descriptors and local reference frames of the keypoints
+    (6.1.2 feature generation; computed once per submap, when first needed)."""
+    if kp.descriptors is not None:
+        return
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kp.cloud))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.normal_radius_m, max_nn=40))
+    pcd.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
+    fpfh = o3d.pipelines.registration.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=params.descriptor_radius_m, max_nn=100))
+    kp.tree = cKDTree(kp.cloud)
+    kp.normals = np.asarray(pcd.normals)
+    _, nearest = kp.tree.query(kp.points)
+    desc = np.asarray(fpfh.data).T[nearest]
+    kp.descriptors = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
+    kp.frames = _lrf(kp.cloud, kp.tree, kp.points, params.descriptor_radius_m)
+
+
+def correspondences(a: Keypoints, b: Keypoints, params: MatcherParams) -> np.ndarray:
+    """(n, 2) keypoint index pairs (a, b): the ``nearest`` most similar descriptors of
+    each keypoint in the other submap, both directions, duplicates removed, L2 distance
+    (scaled to [0, 1]) at most ``max_descriptor_distance`` (6.1.2)."""
+    k = min(params.nearest, len(a.points), len(b.points))
+    if k == 0:
+        return np.zeros((0, 2), int)
+    pairs = []
+    for src, dst, flip in ((a, b, False), (b, a, True)):
+        dist, idx = cKDTree(dst.descriptors).query(src.descriptors, k=k)
+        dist, idx = dist.reshape(len(src.points), k), idx.reshape(len(src.points), k)
+        ok = dist / math.sqrt(2) <= params.max_descriptor_distance
+        i = np.repeat(np.arange(len(src.points)), k)[ok.ravel()]
+        j = idx.ravel()[ok.ravel()]
+        pairs.append(np.column_stack([j, i] if flip else [i, j]))
+    return np.unique(np.vstack(pairs), axis=0)
+
+
+def hough_clusters(scene: Keypoints, model: Keypoints, corr: np.ndarray, params: MatcherParams) -> list[np.ndarray]:
+    """Hough3D voting (Tombari and Di Stefano 2010): clusters of correspondences
+    (indices into ``corr``, whose columns are scene and model keypoints)."""
+    if len(corr) < params.hough_min_votes:
+        return []
+    ref = model.points.mean(axis=0)
+    local = np.einsum("nij,nj->ni", model.frames[corr[:, 1]], ref - model.points[corr[:, 1]])
+    votes = scene.points[corr[:, 0]] + np.einsum("nji,nj->ni", scene.frames[corr[:, 0]], local)
+    cells = np.floor(votes / params.hough_bin_m).astype(np.int64)
+    uniq, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    lookup = {tuple(c): n for c, n in zip(uniq, counts)}
+    offsets = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)]
+    support = np.array([sum(lookup.get((c[0] + i, c[1] + j, c[2] + k), 0) for i, j, k in offsets) for c in uniq])
+    clusters = []
+    taken = np.zeros(len(corr), bool)
+    for u in np.argsort(-support, kind="stable"):
+        if support[u] < params.hough_min_votes:
+            break
+        near = np.all(np.abs(cells - uniq[u]) <= 1, axis=1) & ~taken
+        if near.sum() >= params.hough_min_votes:
+            clusters.append(np.flatnonzero(near))
+            taken |= near
+            if len(clusters) == params.max_clusters:
+                break
+    return clusters
+
+
+# ----------------------------------------------------------------------------- pairwise matching
+
+
+@dataclass(frozen=True)
+class Prior:
+    """The graph's current estimate of ``T_a_b`` and its relative standard deviations
+    ``sigma_xyz`` (m, in ``a``'s frame) for the 2-sigma plausibility checks (6.1.2)."""
+
+    T_a_b: np.ndarray
+    sigma_xyz: np.ndarray
+
+
+@dataclass
+class MatchResult:
+    """Outcome of one pairwise attempt: ``T_a_b`` and its 6x6 covariance ([rotation,
+    translation], right perturbation) on success, else the reason; stage wall times."""
+
+    a: SubmapKey
+    b: SubmapKey
+    T_a_b: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    reason: str = ""
+    inliers: int = 0
+    hypotheses: int = 0
+    correspondences: int = 0
+    icp: IcpResult | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def success(self) -> bool:
+        return self.T_a_b is not None
+
+
+def _within(T: np.ndarray, prior: Prior | None, bound: float) -> bool:
+    if prior is None:
+        return True
+    return bool(np.all(np.abs(T[:3, 3] - prior.T_a_b[:3, 3]) <= bound * prior.sigma_xyz))
+
+
+def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior | None = None) -> MatchResult:
+    """Thesis 6.1.2 for one pair: ``T_a_b`` mapping points of ``b`` into ``a``."""
+    res = MatchResult(a.key, b.key)
+    rng = np.random.default_rng([params.seed, *(ord(c) for c in a.key[0]), a.key[1], *(ord(c) for c in b.key[0]), b.key[1]])
+    t0 = time.perf_counter()
+    compute_features(a, params)
+    compute_features(b, params)
+    t1 = time.perf_counter()
+    corr = correspondences(a, b, params)
+    res.correspondences = len(corr)
+    t2 = time.perf_counter()
+    clusters = hough_clusters(a, b, corr, params) + hough_clusters(b, a, corr[:, ::-1], params)
+    t3 = time.perf_counter()
+    res.timings.update(features=t1 - t0, correspondences=t2 - t1, hough=t3 - t2)
+    best = None
+    seen: set[tuple] = set()
+    for members in clusters:
+        key = tuple(np.sort(members))
+        if key in seen:
+            continue
+        seen.add(key)
+        pa, pb = a.points[corr[members, 0]], b.points[corr[members, 1]]
+        found = ransac(pa, pb, params.dof, params.ransac_inlier_m, params.ransac_iterations, rng, ids=corr[members])
+        if found is None:
+            continue
+        ia, ib = np.unique(corr[members[found.inliers], 0]), np.unique(corr[members[found.inliers], 1])
+        support = min(len(ia), len(ib))
+        T = found.T_a_b
+        if support < params.min_inliers:
+            continue
+        if params.dof == 6 and max(map(abs, roll_pitch(T[:3, :3]))) > params.max_roll_pitch_initial_rad:
+            continue
+        if not _within(T, prior, params.sigma_bound):
+            continue
+        off_line = min(off_line_count(a.points[ia], params.line_distance_m, 50, rng), off_line_count(b.points[ib], params.line_distance_m, 50, rng))
+        if off_line < params.min_off_line_inliers:
+            continue
+        res.hypotheses += 1
+        if best is None or support > best[1]:
+            best = (T, support)
+    t4 = time.perf_counter()
+    res.timings["ransac"] = t4 - t3
+    if best is None:
+        res.reason = "no hypothesis"
+        return res
+    res.inliers = best[1]
+    source, _, _ = voxel_filter(b.cloud, np.zeros(len(b.cloud), bool), np.zeros(len(b.cloud)), params.icp_point_resolution_m)
+    fit = icp(
+        source, a.cloud, a.normals, best[0], params.dof, params.icp_max_distance_m, params.icp_iterations, min_pairs=params.min_icp_pairs, tree=a.tree
+    )
+    res.timings["icp"] = time.perf_counter() - t4
+    res.icp = fit
+    if fit is None:
+        res.reason = "icp: too little overlap"
+        return res
+    T = fit.T_a_b
+    if fit.rmse_m > params.max_icp_rmse_m:
+        res.reason = "icp: residual too large"
+    elif params.dof == 6 and max(map(abs, roll_pitch(T[:3, :3]))) > params.max_roll_pitch_final_rad:
+        res.reason = "roll/pitch"
+    elif not _within(T, prior, params.sigma_bound):
+        res.reason = "outside 2 sigma"
+    else:
+        res.T_a_b, res.cov = T, match_covariance(fit, params)
+    return res
+
+
+def match_covariance(fit: IcpResult, params: MatcherParams) -> np.ndarray:
+    """6x6 covariance ([rotation, translation]) of a match from its ICP residual (6.1.2:
+    approximated from the point-to-point RMSE of the final alignment): the RMSE as the
+    standard deviation of each translation axis, the RMSE over the overlap's horizontal
+    radius for yaw; roll and pitch from ``roll_pitch_sigma_rad`` (4D: fixed at zero by
+    construction, so only the origins' own roll/pitch errors remain) or as yaw (6D)."""
+    s_t = max(fit.rmse_m, 1e-3)
+    s_yaw = s_t / max(fit.overlap_radius_m, 0.5)
+    s_rp = params.roll_pitch_sigma_rad if params.dof == 4 else s_yaw
+    return np.diag(np.square([s_rp, s_rp, s_yaw, s_t, s_t, s_t]))
+
+
+# ----------------------------------------------------------------------------- pairing
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A queued pair (6.1.1) with its overlap (eq. 6.2), relative sigmas and score (eq. 6.4)."""
+
+    pair: PairKey
+    overlap_m2: float
+    sigma_xyz: np.ndarray
+    score: float
+
+
+def pair_key(a: SubmapKey, b: SubmapKey) -> PairKey:
+    return (a, b) if a <= b else (b, a)
+
+
+def _box(kp: Keypoints, S: np.ndarray) -> np.ndarray:
+    xy = kp.obstacle_xyz @ S[:3, :3].T[:, :2] + S[:2, 3]
+    return np.concatenate([xy.min(axis=0), xy.max(axis=0)])
+
+
+def evaluate_pair(ka: Keypoints, kb: Keypoints, S_a: np.ndarray, S_b: np.ndarray, cov_ab: np.ndarray, params: MatcherParams) -> Candidate | str:
+    """Eq. 6.1-6.4 for two submaps with origins ``S_a``, ``S_b`` in the map and the 6x6
+    covariance of ``S_a^-1 S_b`` (right perturbation); the candidate or why not."""
+    if ka.key[0] == kb.key[0] and abs(ka.key[1] - kb.key[1]) == 1:
+        return "consecutive"
+    R = S_b[:3, :3]
+    sigma = np.sqrt(np.maximum(np.diag(R @ cov_ab[3:, 3:] @ R.T), 0.0))  # in the map frame
+    ba, bb = _box(ka, S_a), _box(kb, S_b)
+    overlap = np.minimum(ba[2:], bb[2:]) - np.maximum(ba[:2], bb[:2]) + 2 * sigma[:2]  # eq. 6.1
+    if np.any(overlap <= 0) or overlap[0] * overlap[1] <= params.min_overlap_m2:  # eq. 6.2
+        return "no overlap"
+    if sigma.mean() < params.stereo_error_m:  # eq. 6.3
+        return "already certain"
+    area = float(overlap[0] * overlap[1])
+    R_a = S_a[:3, :3]
+    return Candidate(
+        pair_key(ka.key, kb.key),
+        area,
+        np.sqrt(np.maximum(np.diag(R_a.T @ R @ cov_ab[3:, 3:] @ R.T @ R_a), 0.0)),
+        params.alpha * area + float(sigma.sum()),
+    )
+
+
+class PairQueue:
+    """The pairing thread's state (6.1.1, fig. 6.1): prepared submaps, pairs attempted by
+    any robot of the team, and the priority queue of candidates (eq. 6.4, highest
+    first). The queue is rebuilt from the latest graph estimate by :meth:`refresh`."""
+
+    def __init__(self, params: MatcherParams):
+        self.params = params
+        self.prepared: dict[SubmapKey, Keypoints] = {}
+        self.unsuitable: dict[SubmapKey, str] = {}
+        self.attempted: set[PairKey] = set()
+        self.rejected: dict[str, int] = {}
+        self._heap: list[tuple[float, PairKey, Candidate]] = []
+
+    def add(self, submap: Submap) -> Keypoints | str:
+        if submap.key in self.prepared or submap.key in self.unsuitable:
+            return self.prepared.get(submap.key) or self.unsuitable[submap.key]
+        kp = prepare(submap, self.params)
+        if isinstance(kp, str):
+            self.unsuitable[submap.key] = kp
+        else:
+            self.prepared[submap.key] = kp
+        return kp
+
+    def mark_attempted(self, pair: PairKey) -> None:
+        self.attempted.add(pair)
+
+    def open_pairs(self) -> list[PairKey]:
+        keys = sorted(self.prepared)
+        return [(a, b) for i, a in enumerate(keys) for b in keys[i + 1 :] if (a, b) not in self.attempted]
+
+    def refresh(self, origins: dict[SubmapKey, np.ndarray], covariances: dict[PairKey, np.ndarray]) -> None:
+        """Rebuild the queue from the graph's origins and relative covariances."""
+        self._heap = []
+        self.rejected = {}
+        for pair in self.open_pairs():
+            a, b = pair
+            if a not in origins or b not in origins or pair not in covariances:
+                continue
+            cand = evaluate_pair(self.prepared[a], self.prepared[b], origins[a], origins[b], covariances[pair], self.params)
+            if isinstance(cand, str):
+                self.rejected[cand] = self.rejected.get(cand, 0) + 1
+            else:
+                heapq.heappush(self._heap, (-cand.score, pair, cand))
+
+    def candidates(self) -> list[Candidate]:
+        """The queued candidates not yet attempted, best first."""
+        return [c for _, pair, c in sorted(self._heap) if pair not in self.attempted]
+
+    def pop(self) -> Candidate | None:
+        while self._heap:
+            _, pair, cand = heapq.heappop(self._heap)
+            if pair not in self.attempted:
+                return cand
+        return None
+
+    def __len__(self) -> int:
+        return sum(1 for _, pair, _ in self._heap if pair not in self.attempted)
+
+
+__all__ = [
+    "Candidate",
+    "Keypoints",
+    "MatchMode",
+    "MatchResult",
+    "MatcherException",
+    "MatcherParams",
+    "PairQueue",
+    "Prior",
+    "compute_features",
+    "correspondences",
+    "evaluate_pair",
+    "hough_clusters",
+    "match_pair",
+    "pair_key",
+    "prepare",
+]

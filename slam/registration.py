@@ -1,0 +1,263 @@
+"""Geometric building blocks of submap matching (thesis 6.1.2): the two-point
+gravity-aligned solver (eq. 6.5-6.7), least-squares 4D and 6D alignment of point
+pairs, RANSAC over correspondences, the RANSAC line test of the suitability checks
+(6.1.1), and point-to-plane ICP restricted to x, y, z and yaw (or full 6D).
+
+Transforms map points of submap ``b`` into submap ``a``: ``p_a = R p_b + t``, i.e.
+``T_a_b`` with ``s_b = s_a (+) T_a_b`` as the graph's ``c`` factor expects. Both
+submap origins are gravity-aligned, so a 4D transform is a rotation about z.
+
+Written here rather than taken from Open3D: Open3D's RANSAC and ICP estimate full
+6D transforms and cannot hold roll and pitch at zero, which is the point of 6.1.2;
+the 6D variants use the same code with all six degrees of freedom, so the 4D/6D
+comparison of 8.1.2 differs only in the constraint. Only numpy and scipy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+Z = np.array([0.0, 0.0, 1.0])
+
+
+class RegistrationException(ValueError):
+    """Degenerate input to a solver."""
+
+
+def transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def rot_z(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def yaw_of(R: np.ndarray) -> float:
+    return math.atan2(R[1, 0], R[0, 0])
+
+
+def roll_pitch(R: np.ndarray) -> tuple[float, float]:
+    """Roll and pitch (ZYX Euler) of a rotation."""
+    return math.atan2(R[2, 1], R[2, 2]), -math.asin(float(np.clip(R[2, 0], -1.0, 1.0)))
+
+
+def two_point_4d(p: np.ndarray, q: np.ndarray, p_b: np.ndarray, q_b: np.ndarray) -> np.ndarray | None:
+    """Eq. 6.5-6.7: the gravity-aligned transform ``T_a_b`` that maps the pair
+    ``(p_b, q_b)`` of submap b onto ``(p, q)`` of submap a. ``R_i`` has the horizontal
+    part of ``q_i - p_i``, its cross product with z, and z as columns; ``R = R_0 R_1^T``,
+    ``t = p̄_0 - R p̄_1``. None when either pair is (nearly) vertical."""
+    frames = []
+    for a, b in ((p, q), (p_b, q_b)):
+        d = b - a
+        d = d - (d @ Z) * Z
+        n = np.linalg.norm(d)
+        if n < 1e-6:
+            return None
+        d = d / n
+        frames.append(np.column_stack([d, np.cross(d, Z), Z]))
+    R = frames[0] @ frames[1].T
+    return transform(R, (p + q) / 2 - R @ ((p_b + q_b) / 2))
+
+
+def fit_4d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares ``T_a_b`` with rotation about z only, for paired points (n >= 2):
+    the 2D Procrustes yaw of the horizontal parts, translation from the centroids."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    da, db = a - ca, b - cb
+    s = float(np.sum(db[:, 0] * da[:, 1] - db[:, 1] * da[:, 0]))
+    c = float(np.sum(db[:, 0] * da[:, 0] + db[:, 1] * da[:, 1]))
+    if abs(s) + abs(c) < 1e-12:
+        raise RegistrationException("points have no horizontal extent: yaw undetermined")
+    R = rot_z(math.atan2(s, c))
+    return transform(R, ca - R @ cb)
+
+
+def fit_6d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares rigid ``T_a_b`` for paired points (n >= 3, not collinear), by SVD
+    (Umeyama 1991, without scale)."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    H = (b - cb).T @ (a - ca)
+    U, S, Vt = np.linalg.svd(H)
+    if S[1] < 1e-9 * max(S[0], 1e-12):
+        raise RegistrationException("points are collinear: rotation undetermined")
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return transform(R, ca - R @ cb)
+
+
+@dataclass(frozen=True)
+class RansacResult:
+    T_a_b: np.ndarray
+    inliers: np.ndarray  # indices into the correspondences
+
+
+def ransac(
+    a: np.ndarray,
+    b: np.ndarray,
+    dof: int,
+    inlier_m: float,
+    iterations: int,
+    rng: np.random.Generator,
+    ids: np.ndarray | None = None,
+    min_spread_m: float = 0.3,
+) -> RansacResult | None:
+    """RANSAC over paired points ``a[i] <-> b[i]``: minimal samples of 2 points with
+    :func:`two_point_4d` (``dof=4``) or 3 points with :func:`fit_6d` (``dof=6``), sample
+    points at least ``min_spread_m`` apart in both sets; the hypothesis with the most
+    support (first found on ties), refitted by least squares on its inliers (distance
+    below ``inlier_m``). With ``ids`` (n, 2), the keypoint indices behind each pair,
+    support counts distinct keypoints (the smaller of the two sides), so that a clump of
+    many-to-one correspondences cannot outvote a spread-out set. None with fewer pairs
+    than a sample."""
+    k = 2 if dof == 4 else 3
+    n = len(a)
+    if n < k:
+        return None
+
+    def support(inl: np.ndarray) -> int:
+        if ids is None:
+            return len(inl)
+        return min(len(np.unique(ids[inl, 0])), len(np.unique(ids[inl, 1])))
+
+    def spread(pts: np.ndarray) -> bool:
+        return all(np.linalg.norm(pts[i] - pts[j]) >= min_spread_m for i in range(k) for j in range(i + 1, k))
+
+    best: np.ndarray | None = None
+    best_support = -1
+    for _ in range(iterations):
+        idx = rng.choice(n, size=k, replace=False)
+        if not (spread(a[idx]) and spread(b[idx])):
+            continue
+        try:
+            T = two_point_4d(a[idx[0]], a[idx[1]], b[idx[0]], b[idx[1]]) if dof == 4 else fit_6d(a[idx], b[idx])
+        except RegistrationException:
+            continue
+        if T is None:
+            continue
+        inl = np.flatnonzero(np.linalg.norm(b @ T[:3, :3].T + T[:3, 3] - a, axis=1) < inlier_m)
+        s = support(inl)
+        if s > best_support:
+            best, best_support = inl, s
+    if best is None or len(best) < k:
+        return None
+    try:
+        T = fit_4d(a[best], b[best]) if dof == 4 else fit_6d(a[best], b[best])
+    except RegistrationException:
+        return None
+    inl = np.flatnonzero(np.linalg.norm(b @ T[:3, :3].T + T[:3, 3] - a, axis=1) < inlier_m)
+    return RansacResult(T, inl if support(inl) >= best_support else best)
+
+
+def off_line_count(points: np.ndarray, distance_m: float, iterations: int, rng: np.random.Generator) -> int:
+    """Thesis 6.1.1: fit a 3D line to ``points`` by RANSAC (the line with the most points
+    within ``distance_m``) and count the points farther than ``distance_m`` from it in
+    the xy-plane."""
+    n = len(points)
+    if n < 2:
+        return 0
+    best_line, best_in = None, -1
+    for _ in range(iterations):
+        i, j = rng.choice(n, size=2, replace=False)
+        d = points[j] - points[i]
+        norm = np.linalg.norm(d)
+        if norm < 1e-9:
+            continue
+        d = d / norm
+        r = points - points[i]
+        dist = np.linalg.norm(r - np.outer(r @ d, d), axis=1)
+        inl = int(np.sum(dist <= distance_m))
+        if inl > best_in:
+            best_line, best_in = (points[i], d), inl
+    if best_line is None:
+        return 0
+    o, d = best_line
+    dxy = d[:2]
+    r = (points - o)[:, :2]
+    if np.linalg.norm(dxy) < 1e-9:  # a vertical line: xy distance to its foot
+        dist = np.linalg.norm(r, axis=1)
+    else:
+        u = dxy / np.linalg.norm(dxy)
+        dist = np.abs(r[:, 0] * u[1] - r[:, 1] * u[0])
+    return int(np.sum(dist > distance_m))
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    T_a_b: np.ndarray
+    rmse_m: float  # point-to-point RMS distance of the final correspondences
+    pairs: int
+    overlap_radius_m: float  # RMS horizontal distance of the paired points from their centroid
+    iterations: int
+    converged: bool
+
+
+def icp(
+    source: np.ndarray,
+    target: np.ndarray,
+    target_normals: np.ndarray,
+    T0: np.ndarray,
+    dof: int = 4,
+    max_distance_m: float = 0.3,
+    iterations: int = 30,
+    tolerance: float = 1e-5,
+    min_pairs: int = 50,
+    tree: cKDTree | None = None,
+) -> IcpResult | None:
+    """Point-to-plane ICP of ``source`` (submap b) onto ``target`` (submap a, with unit
+    normals) from ``T0``, by Gauss-Newton with a Huber weight (thesis 6.1.2: refinement
+    on the full clouds). ``dof=4`` optimises x, y, z and yaw only, the increment applied
+    as ``T <- Exp(delta) T`` with ``delta = (dx, dy, dz, dyaw)``, so roll and pitch of
+    ``T0`` are never changed (zero for a 4D hypothesis); ``dof=6`` adds roll and pitch.
+    Pairs farther apart than ``max_distance_m`` are ignored. None with fewer than
+    ``min_pairs`` pairs."""
+    tree = cKDTree(target) if tree is None else tree
+    T = np.array(T0, dtype=float)
+    converged = False
+    done = 0
+    for it in range(1, iterations + 1):
+        done = it
+        x = source @ T[:3, :3].T + T[:3, 3]
+        dist, idx = tree.query(x, distance_upper_bound=max_distance_m)
+        ok = np.isfinite(dist)
+        if ok.sum() < min_pairs:
+            return None
+        x, p, n = x[ok], target[idx[ok]], target_normals[idx[ok]]
+        r = np.einsum("ij,ij->i", x - p, n)
+        # d(R x + t)/d[t, w] for a left increment: t -> I, w -> -[x]_x
+        J = np.column_stack([n, np.cross(x, n)])  # [n, x × n]: the rotation columns about x, y, z
+        J = J[:, [0, 1, 2, 5]] if dof == 4 else J
+        huber = 0.05
+        w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
+        H = J.T @ (J * w[:, None])
+        g = J.T @ (w * r)
+        try:
+            delta = -np.linalg.solve(H + 1e-9 * np.eye(len(g)), g)
+        except np.linalg.LinAlgError:
+            return None
+        if dof == 4:
+            dT = transform(rot_z(delta[3]), delta[:3])
+        else:
+            w_ = delta[3:]
+            angle = np.linalg.norm(w_)
+            K = np.array([[0, -w_[2], w_[1]], [w_[2], 0, -w_[0]], [-w_[1], w_[0], 0]])
+            dR = np.eye(3) if angle < 1e-12 else np.eye(3) + math.sin(angle) / angle * K + (1 - math.cos(angle)) / angle**2 * K @ K
+            dT = transform(dR, delta[:3])
+        T = dT @ T
+        if np.linalg.norm(delta) < tolerance:
+            converged = True
+            break
+    x = source @ T[:3, :3].T + T[:3, 3]
+    dist, idx = tree.query(x, distance_upper_bound=max_distance_m)
+    ok = np.isfinite(dist)
+    if ok.sum() < min_pairs:
+        return None
+    paired = x[ok]
+    radius = float(np.sqrt(np.mean(np.sum((paired[:, :2] - paired[:, :2].mean(axis=0)) ** 2, axis=1))))
+    return IcpResult(T, float(np.sqrt(np.mean(dist[ok] ** 2))), int(ok.sum()), radius, done, converged)

@@ -1,0 +1,210 @@
+"""Submap matching (thesis 6.1): the 4D solver and ICP on exact data, pairing (eq.
+6.1-6.4), and matches of submaps built from rendered stereo against the true transform."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slam.matcher import MatcherParams, MatchMode, PairQueue, evaluate_pair, match_pair, prepare
+from slam.registration import fit_4d, fit_6d, icp, off_line_count, ransac, roll_pitch, rot_z, transform, two_point_4d, yaw_of
+
+
+def random_4d(rng: np.random.Generator) -> np.ndarray:
+    return transform(rot_z(rng.uniform(-math.pi, math.pi)), rng.uniform(-5, 5, 3))
+
+
+def apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and yaw (deg) error of ``T`` against ``T_true``."""
+    D = np.linalg.inv(T_true) @ T
+    return float(np.linalg.norm(D[:3, 3])), math.degrees(abs(yaw_of(D[:3, :3])))
+
+
+# ----------------------------------------------------------------------------- solvers
+
+
+def test_two_point_solver_recovers_an_exact_4d_transform():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        T = random_4d(rng)
+        b = rng.uniform(-3, 3, (2, 3))
+        a = apply(T, b)
+        np.testing.assert_allclose(two_point_4d(a[0], a[1], b[0], b[1]), T, atol=1e-12)
+    assert two_point_4d(np.zeros(3), np.array([0, 0, 1.0]), np.zeros(3), np.array([1.0, 0, 0])) is None  # vertical pair
+
+
+def test_least_squares_fits_and_ransac_with_outliers():
+    rng = np.random.default_rng(1)
+    T = random_4d(rng)
+    b = rng.uniform(-3, 3, (40, 3))
+    a = apply(T, b)
+    np.testing.assert_allclose(fit_4d(a, b), T, atol=1e-12)
+    np.testing.assert_allclose(fit_6d(a, b), T, atol=1e-10)
+    a_noisy = a.copy()
+    a_noisy[:15] += rng.uniform(-2, 2, (15, 3))  # 15 of 40 outliers
+    for dof in (4, 6):
+        found = ransac(a_noisy, b, dof, 0.05, 200, np.random.default_rng(2))
+        assert set(found.inliers) == set(range(15, 40))
+        np.testing.assert_allclose(found.T_a_b, T, atol=1e-9)
+
+
+def _terrain_cloud(rng: np.random.Generator) -> np.ndarray:
+    """A bumpy 6 x 6 m surface with two boulders: structure in x, y and z."""
+    xy = rng.uniform(-3, 3, (6000, 2))
+    z = 0.2 * np.sin(1.3 * xy[:, 0]) * np.cos(0.9 * xy[:, 1])
+    for cx, cy, r in ((1.0, 0.5, 0.6), (-1.2, -1.0, 0.5)):
+        d = np.hypot(xy[:, 0] - cx, xy[:, 1] - cy)
+        z += np.where(d < r, np.sqrt(np.maximum(r**2 - d**2, 0)), 0.0)
+    return np.column_stack([xy, z])
+
+
+def _normals(cloud: np.ndarray) -> np.ndarray:
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.2, max_nn=30))
+    return np.asarray(pcd.normals)
+
+
+@pytest.mark.parametrize("dof", [4, 6])
+def test_icp_converges_from_a_perturbed_start_and_4d_keeps_roll_pitch(dof):
+    rng = np.random.default_rng(3)
+    target = _terrain_cloud(rng)
+    T = transform(rot_z(0.3), [0.5, -0.2, 0.1])
+    source = apply(np.linalg.inv(T), target[::2])
+    start = transform(rot_z(0.3 + math.radians(4)), [0.65, -0.05, 0.0])
+    fit = icp(source, target, _normals(target), start, dof=dof, max_distance_m=0.5, iterations=60)
+    assert fit is not None and fit.rmse_m < 0.01
+    t_err, yaw_err = errors(fit.T_a_b, T)
+    assert t_err < 0.01 and yaw_err < 0.1
+    if dof == 4:
+        assert max(map(abs, roll_pitch(fit.T_a_b[:3, :3]))) < 1e-12
+
+
+def test_line_test_counts_points_off_the_line():
+    rng = np.random.default_rng(4)
+    line = np.column_stack([np.linspace(0, 5, 50), 0.05 * rng.standard_normal(50), rng.uniform(0, 0.5, 50)])
+    off = np.array([[1.0, 2.0, 0.0], [2.0, -1.5, 0.3], [4.0, 0.8, 0.1]])
+    assert off_line_count(line, 0.5, 100, np.random.default_rng(0)) == 0
+    assert off_line_count(np.vstack([line, off]), 0.5, 100, np.random.default_rng(0)) == 3
+
+
+# ----------------------------------------------------------------------------- pairing
+
+
+class _Kp:
+    def __init__(self, key, obstacle_xyz):
+        self.key = key
+        self.obstacle_xyz = np.asarray(obstacle_xyz, float)
+
+
+def _square(x0, y0, size):
+    return [[x0, y0, 0], [x0 + size, y0 + size, 0.5]]
+
+
+def test_pairing_overlap_sigma_widening_and_score():
+    p = MatcherParams(stereo_error_m=0.12)
+    a, b = _Kp(("lru1", 2), _square(0, 0, 3)), _Kp(("lru2", 5), _square(0, 0, 3))
+    S_a, S_b = np.eye(4), transform(np.eye(3), [1.5, 1.5, 0])  # b's box 1.5..4.5 overlaps a's 0..3 by 1.5 x 1.5
+    cov = np.diag([1e-4] * 3 + [0.3**2, 0.2**2, 0.1**2])
+    cand = evaluate_pair(a, b, S_a, S_b, cov, p)
+    # eq. 6.1: 1.5 + 2 * 0.3 and 1.5 + 2 * 0.2; eq. 6.4: 0.125 * area + (0.3 + 0.2 + 0.1)
+    assert cand.overlap_m2 == pytest.approx(2.1 * 1.9)
+    assert cand.score == pytest.approx(0.125 * 2.1 * 1.9 + 0.6)
+    np.testing.assert_allclose(cand.sigma_xyz, [0.3, 0.2, 0.1])
+    # eq. 6.2: without the sigmas the overlap is 2.25 m2, with tiny sigmas eq. 6.3 rejects
+    assert evaluate_pair(a, b, S_a, S_b, np.diag([1e-4] * 3 + [1e-4] * 3), p) == "already certain"
+    far = transform(np.eye(3), [2.6, 2.6, 0])  # 0.4 x 0.4 overlap + 2 sigma each
+    assert evaluate_pair(a, b, S_a, far, cov, p) == "no overlap"
+    assert evaluate_pair(a, _Kp(("lru1", 3), _square(0, 0, 3)), S_a, S_a, cov, p) == "consecutive"
+
+
+def test_pair_queue_orders_by_score_and_tries_each_pair_once():
+    p = MatcherParams(stereo_error_m=0.01)
+    q = PairQueue(p)
+    boxes = {("a", 0): (0, 0), ("a", 5): (0.5, 0.5), ("b", 0): (1.0, 1.0)}
+    q.prepared = {k: _Kp(k, _square(x, y, 3)) for k, (x, y) in boxes.items()}
+    origins = {k: np.eye(4) for k in boxes}
+    cov = np.diag([1e-4] * 3 + [0.1**2] * 3)
+    q.refresh(origins, {pair: cov for pair in q.open_pairs()})
+    order = [c.pair for c in q.candidates()]
+    assert order[0] == (("a", 0), ("a", 5))  # the largest overlap first (equal sigmas)
+    q.mark_attempted(order[0])
+    popped = q.pop()
+    assert popped.pair == order[1]
+    q.mark_attempted(popped.pair)
+    q.refresh(origins, {pair: cov for pair in q.open_pairs()})
+    assert [c.pair for c in q.candidates()] == [order[2]]
+
+
+# ----------------------------------------------------------------------------- rendered submaps
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    from sim.rocky_scene import RockyScene
+
+    scene = RockyScene()
+    try:
+        a = scene.submap("lru1", 3, (-3.0, -0.4), (2.0, -0.4))
+        b = scene.submap("lru2", 7, (-2.0, 1.2), (2.5, -0.8))  # the same rocks from another path, 30 deg turned
+        far = scene.submap("lru2", 9, (5.0, -8.0), (8.0, -3.0))
+        flat_scene = RockyScene(rocks=0)
+        flat = flat_scene.submap("lru2", 11, (-3.0, -0.4), (2.0, -0.4))
+        flat_scene.close()
+    finally:
+        scene.close()
+    return a, b, far, flat
+
+
+@pytest.mark.parametrize("mode", ["4d", "6d"])
+def test_rendered_submaps_of_the_same_rocks_match(rendered, mode):
+    (A, O_a), (B, O_b), _, _ = rendered
+    p = MatcherParams(mode=mode)
+    ka, kb = prepare(A, p), prepare(B, p)
+    res = match_pair(ka, kb, p)
+    assert res.success, res.reason
+    T_true = np.linalg.inv(O_a) @ O_b
+    t_err, yaw_err = errors(res.T_a_b, T_true)
+    assert t_err < 0.1 and yaw_err < 1.0
+    rp = max(map(abs, roll_pitch(res.T_a_b[:3, :3])))
+    assert rp == 0.0 if mode == "4d" else rp < p.max_roll_pitch_final_rad
+    sigma = np.sqrt(np.diag(res.cov))
+    assert t_err < 3 * math.sqrt(3) * sigma[3] and math.radians(yaw_err) < 3 * sigma[2]
+    again = match_pair(prepare(A, p), prepare(B, p), p)
+    np.testing.assert_array_equal(again.T_a_b, res.T_a_b)  # seeded: the same result
+
+
+def test_prior_far_from_the_match_rejects_it(rendered):
+    (A, O_a), (B, O_b), _, _ = rendered
+    p = MatcherParams()
+    from slam.matcher import Prior
+
+    T_true = np.linalg.inv(O_a) @ O_b
+    wrong = T_true.copy()
+    wrong[:3, 3] += [1.0, 0.0, 0.0]
+    res = match_pair(prepare(A, p), prepare(B, p), p, Prior(wrong, np.array([0.2, 0.2, 0.2])))
+    assert not res.success
+    assert match_pair(prepare(A, p), prepare(B, p), p, Prior(T_true, np.array([0.2, 0.2, 0.2]))).success
+
+
+def test_non_overlapping_and_featureless_submaps_are_rejected(rendered):
+    (A, _), _, (far, _), (flat, _) = rendered
+    p = MatcherParams()
+    res = match_pair(prepare(A, p), prepare(far, p), p)
+    assert not res.success
+    assert prepare(flat, p) == "too few obstacle points"
+
+
+def test_params_validation():
+    with pytest.raises(ValueError, match="mode"):
+        MatcherParams(mode="5d")
+    with pytest.raises(ValueError, match="alpha=-1"):
+        MatcherParams(alpha=-1)
+    assert MatcherParams(mode="6d").mode is MatchMode.SIX_D
