@@ -37,6 +37,7 @@ bench: setup
 	$(BIN)/python -m sim.bench scenarios/etna_two_rovers.yaml --variants no_depth_truth --out results/bench/etna
 	$(BIN)/python -m comms.bench --out results/bench/comms.json
 	$(BIN)/python -m slam.bench --out results/bench/graph.json
+	$(BIN)/python -m sim.match_bench --out results/bench/matching.json
 	$(BIN)/python -m sim.batch_bench --out results/bench/batch.json
 
 lint: setup

@@ -233,6 +233,22 @@ def batch(
         raise typer.Exit(1)
 
 
+@app.command("marker-lut")
+def marker_lut(
+    scenario: Annotated[Path, typer.Argument(help="scenario YAML: its robots' cameras and marker sizes")],
+    force: Annotated[bool, typer.Option("--force", help="rebuild tables that exist")] = False,
+    distances: Annotated[int, typer.Option("--distances", min=3, help="grid size in distance")] = 30,
+    angles: Annotated[int, typer.Option("--angles", min=3, help="grid size in view angle")] = 23,
+) -> None:
+    """Build the marker error lookup tables (thesis 6.2.3) a scenario needs, under assets/marker_lut/."""
+    from sim import marker_lut as ml
+
+    sc = _load(scenario, [])
+    t0 = time.perf_counter()
+    written = ml.build_for_scenario(sc, force, distances, angles, log=console.print)
+    console.print(f"{len(written)} table(s) written to {ml.LUT_DIR} in {time.perf_counter() - t0:.0f} s")
+
+
 @app.command()
 def report(
     batch_dir: Annotated[Path, typer.Argument(help="a batch folder (holds index.json)")],

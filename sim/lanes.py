@@ -6,7 +6,10 @@ a job: the job waits for its device, runs the real code when it gets it, then ho
 the device for the compute time of the lane's :class:`ComputeModel`, so its result
 appears at the simulated time a robot would have it. Real-time jobs outrank
 background jobs; a real-time stage whose queue is full drops the new job, as a
-robot's pipeline drops frames it cannot keep up with.
+robot's pipeline drops frames it cannot keep up with. A real-time job preempts a
+background job holding a core (``simpy.PreemptiveResource``): the background job
+queues again for the rest of its compute time, as an operating system runs a
+low-priority process (thesis 6.1: the matcher takes whatever processing time is free).
 """
 
 from __future__ import annotations
@@ -80,7 +83,7 @@ class Lane:
         self.robot = robot
         self.compute = compute
         self.max_queue = max_queue
-        self.devices: dict[str, simpy.PriorityResource] = {Device.CPU: simpy.PriorityResource(env, capacity=cores)}
+        self.devices: dict[str, simpy.PriorityResource] = {Device.CPU: simpy.PreemptiveResource(env, capacity=cores)}
         if fpga:
             self.devices[Device.FPGA] = simpy.PriorityResource(env, capacity=1)
         self.capacity = {name: res.capacity for name, res in self.devices.items()}
@@ -109,12 +112,21 @@ class Lane:
             return None
         resource = self.devices[device]
         # requested now, so a job that finds its device free holds it at once
-        request = resource.request(priority=int(priority))
+        request = self._request(resource, priority)
         waits = not request.triggered
         queue.waiting += waits
-        return self.env.process(self._run(resource, request, waits, queue, record, work, on_done))
+        process = self.env.process(self._run(resource, request, waits, queue, record, work, on_done, priority))
+        request.proc = process  # made outside the job's process: preemption must interrupt the job
+        return process
 
-    def _run(self, resource, request, waits: bool, queue: _StageQueue, record: JobRecord, work, on_done):
+    @staticmethod
+    def _request(resource, priority: Priority):
+        """Real-time requests preempt background users of a preemptive resource."""
+        if isinstance(resource, simpy.PreemptiveResource):
+            return resource.request(priority=int(priority), preempt=priority == Priority.REALTIME)
+        return resource.request(priority=int(priority))
+
+    def _run(self, resource, request, waits: bool, queue: _StageQueue, record: JobRecord, work, on_done, priority: Priority):
         try:
             yield request
             queue.waiting -= waits
@@ -124,7 +136,16 @@ class Lane:
             record.wall_s = time.perf_counter() - t0
             self.wall_s += record.wall_s
             record.compute_s = self.compute.cost(record.stage, record.wall_s)
-            yield self.env.timeout(record.compute_s)
+            left = record.compute_s
+            while True:
+                start = self.env.now
+                try:
+                    yield self.env.timeout(left)
+                    break
+                except simpy.Interrupt:  # preempted by a real-time job: queue for the rest
+                    left -= self.env.now - start
+                    request = self._request(resource, priority)
+                    yield request
             record.finished = self.env.now
             self.busy_s[record.device] += record.compute_s
         finally:

@@ -98,9 +98,11 @@ def main(argv: list[str] | None = None) -> None:
     args.out.write_text(json.dumps(result, indent=2))
     for mode, r in result.items():
         stages = ", ".join(f"{k} {v['mean']:.3f} s" for k, v in r["stage_s"].items())
-        print(f"{mode}: {r['suitable']}/{r['submaps']} submaps suitable; {r['pairs_tried']} pairs: {r['correct']} correct, "
-              f"{r['wrong']} wrong, {r['rejected']} rejected; median error {r['translation_error_m_median']} m, "
-              f"{r['yaw_error_deg_median']} deg; per stage: {stages}")
+        print(
+            f"{mode}: {r['suitable']}/{r['submaps']} submaps suitable; {r['pairs_tried']} pairs: {r['correct']} correct, "
+            f"{r['wrong']} wrong, {r['rejected']} rejected; median error {r['translation_error_m_median']} m, "
+            f"{r['yaw_error_deg_median']} deg; per stage: {stages}"
+        )
     print(f"wrote {args.out}")
 
 

@@ -25,6 +25,7 @@ import numpy as np
 from comms import Delivery, Network
 from sim.camera_rig import StereoRig
 from sim.lanes import Lane, Priority
+from sim.marker_lut import load_tables
 from sim.robots.base import Robot
 from sim.scenario import MappingConfig, Scenario, SlamConfig
 from sim.sensors import ImuSpec
@@ -36,7 +37,7 @@ from slam.local_mapper import LocalMapper
 from slam.markers import UncertaintyModel
 from slam.matcher import MatcherParams, MatchMode
 from slam.obstacles import ObstacleParams
-from slam.stereo import DEFAULT_MIN_DEPTH_M, StereoCalibration, depth_error, max_depth_for_error
+from slam.stereo import DEFAULT_MIN_DEPTH_M, StereoCalibration, depth_error
 from slam.submap import SubmapParams
 from slam.vo import StereoVO, VoResult
 
@@ -90,16 +91,16 @@ def local_mapper(robot: str, calib: StereoCalibration, cfg: MappingConfig) -> Lo
 
 
 def matcher_params(cfg: SlamConfig, calib: StereoCalibration, seed: int) -> MatcherParams | None:
-    """Submap matching from ``slam.matching``; eq. 6.3's stereo error at ``p_z`` (default:
-    the depth where eq. 5.2c reaches the submaps' far cut, ``mapping.max_depth_error_m``)."""
+    """Submap matching from ``slam.matching``, eq. 6.3's stereo error by eq. 5.2c at
+    ``stereo_error_depth_m`` for the robot's VO rig."""
     m = cfg.matching
     if not (m.enabled and cfg.mapping.enabled and cfg.graph.enabled):
         return None
-    p_z = m.stereo_error_depth_m or max_depth_for_error(calib, cfg.mapping.max_depth_error_m)
     return MatcherParams(
         mode=MatchMode(m.mode),
         min_overlap_m2=m.min_overlap_m2,
-        stereo_error_m=float(depth_error(p_z, calib)),
+        stereo_error_m=float(depth_error(m.stereo_error_depth_m, calib)),
+        sigma_scale=m.sigma_scale,
         sigma_bound=m.sigma_bound,
         descriptor_radius_m=m.descriptor_radius_m,
         max_descriptor_distance=m.max_descriptor_distance,
@@ -108,11 +109,12 @@ def matcher_params(cfg: SlamConfig, calib: StereoCalibration, seed: int) -> Matc
     )
 
 
-def agent_params(cfg: SlamConfig, matching: MatcherParams | None = None) -> AgentParams:
+def agent_params(cfg: SlamConfig, matching: MatcherParams | None = None, marker_tables: dict | None = None) -> AgentParams:
     """The agent's parameters from the scenario's ``slam`` section."""
     g, d = cfg.graph, cfg.detections
     return AgentParams(
         matching=matching,
+        marker_tables=marker_tables or {},
         graph=GraphParams(topology=Topology(g.topology), cauchy_c=g.cauchy_c),
         uncertainty=UncertaintyModel(d.uncertainty),
         detection_interval_s=d.min_interval_s,
@@ -195,7 +197,10 @@ class OnboardStack:
         team = [r.name for r in scenario.robots]
         seed = int(np.random.SeedSequence([scenario.seed, team.index(robot.name), 6]).generate_state(1)[0])
         matching = matcher_params(cfg, calibration(self.vo_rig), seed)
-        self.agent = Agent(robot.name, team, markers, self.estimator, self.mapper, agent_params(cfg, matching))
+        tables = None
+        if cfg.graph.enabled and cfg.detections.enabled and cfg.detections.uncertainty in ("lut", "lut_online"):
+            tables = load_tables(robot.stereo_rigs, {m.size_m for m in markers})
+        self.agent = Agent(robot.name, team, markers, self.estimator, self.mapper, agent_params(cfg, matching, tables))
         self.exchange = cfg.graph.enabled
         self.detect_markers = cfg.graph.enabled and cfg.detections.enabled
         self.network: Network | None = None

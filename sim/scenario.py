@@ -322,8 +322,9 @@ class DetectionConfig(StrictModel):
     """AprilTag robot detections and landmark observations (thesis 6.2.1)."""
 
     enabled: bool = True
-    uncertainty: Literal["constant", "quadratic"] = Field(
-        "quadratic", description="eq. 8.1 or 8.2; the learned models of thesis 6.2.3 (lut, online) are not built yet"
+    uncertainty: Literal["constant", "quadratic", "lut", "online", "lut_online"] = Field(
+        "quadratic",
+        description="eq. 8.1, eq. 8.2, or thesis 6.2.3: lookup table (assets/marker_lut, `marsyard marker-lut`), corner perturbation, both",
     )
     min_interval_s: NonNegFloat = Field(2.0, description="at most one detection of each target per interval")
     max_distance_m: PositiveFloat = Field(6.0, description="markers farther than this are not used")
@@ -341,8 +342,11 @@ class MatchingConfig(StrictModel):
     enabled: bool = Field(True, description="match submaps in the background (needs slam.mapping and slam.graph)")
     mode: Literal["4d", "6d"] = Field("4d", description="thesis 6.1.2: gravity-aligned 4D alignment and ICP, or 6D (8.1.2's baseline)")
     min_overlap_m2: PositiveFloat = Field(2.0, description="eq. 6.2: xy overlap of the obstacle bounding boxes, widened by 2 relative sigmas")
-    stereo_error_depth_m: PositiveFloat | None = Field(
-        None, description="p_z of eq. 6.3 (pairs more certain than the stereo error there are skipped); default: the submaps' far cut"
+    stereo_error_depth_m: PositiveFloat = Field(
+        2.0, description="p_z of eq. 6.3: pairs more certain than the stereo error at this depth are skipped (thesis: 4 m for its LRU)"
+    )
+    sigma_scale: PositiveFloat = Field(
+        1.0, description="the graph's relative sigmas are multiplied by this in eq. 6.1-6.4 and the 2-sigma checks (>1: an overconfident filter)"
     )
     sigma_bound: PositiveFloat = Field(2.0, description="hypotheses and results must lie within this many relative sigmas of the graph")
     descriptor_radius_m: PositiveFloat = Field(0.4, description="FPFH radius (and of the known-space check around keypoints)")

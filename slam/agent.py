@@ -33,7 +33,8 @@ from slam.filter import switch_pose3_covariance
 from slam.graph import GraphParams, MultiRobotGraph, UpdateStats
 from slam.local_estimator import FrameSwitch, LocalEstimator
 from slam.local_mapper import LocalMapper
-from slam.markers import MarkerDetector, UncertaintyModel, detection_covariance, relative_pose
+from slam.marker_uncertainty import DEFAULT_DP_PX, MAX_ROTATION_SIGMA_RAD, MarkerErrorTable, detection_sigmas
+from slam.markers import MarkerDetection, MarkerDetector, UncertaintyModel, detection_covariance, relative_pose
 from slam.matcher import Candidate, MatcherParams
 from slam.messages import (
     DetectionMessage,
@@ -101,7 +102,9 @@ def upright_solution(
 @dataclass(frozen=True)
 class AgentParams:
     graph: GraphParams = field(default_factory=GraphParams)
-    uncertainty: UncertaintyModel = UncertaintyModel.QUADRATIC  # eq. 8.1 / 8.2
+    uncertainty: UncertaintyModel = UncertaintyModel.QUADRATIC  # eq. 8.1 / 8.2, or 6.2.3's lut / online / lut_online
+    marker_tables: dict[tuple[str, float], MarkerErrorTable] = field(default_factory=dict)  # (camera, marker size) -> table
+    corner_error_px: float = DEFAULT_DP_PX  # eq. 6.9's corner perturbation
     detection_interval_s: float = 2.0  # at most one detection of a target per interval
     max_detection_distance_m: float = 6.0
     max_ambiguity: float = 0.7  # PnP: best / second-best reprojection error at most this (1: ambiguous)
@@ -267,7 +270,10 @@ class Agent:
             if T_cam_marker is None:
                 self.stats.detections_rejected["not upright"] += 1
                 continue
-            cov_marker = detection_covariance(self.params.uncertainty, det.distance_m)
+            cov_marker = self._marker_covariance(camera, det, marker.size_m, detector)
+            if cov_marker is None:
+                self.stats.detections_rejected["uncertain"] += 1
+                continue
             T, cov = relative_pose(T_body_cam, T_cam_marker, marker.T_body_marker, cov_marker)
             msg = DetectionMessage(own, T, cov, marker.robot, marker.landmark, det.tag_id, det.distance_m)
             self._last_detection[target] = t
@@ -275,6 +281,18 @@ class Agent:
             self.detections.append(DetectionRecord(t, det.tag_id, target, T, cov, det.distance_m, det.ambiguity))
             out.append(self._outgoing(KIND_DETECTION, msg))
         return out
+
+    def _marker_covariance(self, camera: str, det: MarkerDetection, size_m: float, detector: MarkerDetector) -> np.ndarray | None:
+        """6x6 covariance of ``T_cam_marker`` by the configured model (eq. 8.1, 8.2 or 6.2.3);
+        None when a learned model puts a rotational sigma above 75 deg (thesis 8.1.3)."""
+        model = self.params.uncertainty
+        if model in (UncertaintyModel.CONSTANT, UncertaintyModel.QUADRATIC):
+            return detection_covariance(model, det.distance_m)
+        table = self.params.marker_tables.get((camera, size_m))
+        sigma = detection_sigmas(model, det, table=table, detector=detector, dp_px=self.params.corner_error_px)
+        if sigma[:3].max() > MAX_ROTATION_SIGMA_RAD:
+            return None
+        return np.diag(sigma**2)
 
     # ------------------------------------------------------------------ the team
 

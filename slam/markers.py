@@ -1,5 +1,6 @@
 """AprilTag 36h11 detection, marker pose by PnP, the simple detection uncertainty models
-(thesis 6.2.1, eq. 8.1-8.2) and the robot-detection composition of eq. 4.7.
+(thesis 6.2.1, eq. 8.1-8.2; the learned ones of 6.2.3 are in ``slam.marker_uncertainty``)
+and the robot-detection composition of eq. 4.7.
 
 Detection runs on a rectified, distortion-free pinhole image. ``cv2.aruco``
 (``DICT_APRILTAG_36h11``) finds and decodes the tags; the corners are then refined with
@@ -97,6 +98,9 @@ class UncertaintyModel(StrEnum):
 
     CONSTANT = "constant"  # eq. 8.1
     QUADRATIC = "quadratic"  # eq. 8.2: eq. 8.1 times (1 + d)^2
+    LUT = "lut"  # 6.2.3: precomputed table over distance and view angle (slam.marker_uncertainty)
+    ONLINE = "online"  # 6.2.3: 256 corner perturbations through PnP (eq. 6.9)
+    LUT_ONLINE = "lut_online"  # 6.2.3: the larger of both (the thesis's method)
 
 
 # Eq. 8.1: standard deviations of 1 cm (translation) and 1.3 deg (rotation), here in the
@@ -407,7 +411,9 @@ def detection_covariance(model: UncertaintyModel | str, distance_m: float) -> np
         raise MarkerException(f"distance_m must be finite and >= 0, got {distance_m}")
     if model is UncertaintyModel.CONSTANT:
         return SIGMA_CONSTANT.copy()
-    return SIGMA_CONSTANT * (1.0 + d) ** 2
+    if model is UncertaintyModel.QUADRATIC:
+        return SIGMA_CONSTANT * (1.0 + d) ** 2
+    raise MarkerException(f"the {model.value} model needs the detection itself: slam.marker_uncertainty.detection_sigmas")
 
 
 def relative_pose(T_a_cam: np.ndarray, T_cam_marker: np.ndarray, T_b_marker: np.ndarray, cov_marker: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

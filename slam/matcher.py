@@ -85,6 +85,7 @@ class MatcherParams:
     max_roll_pitch_initial_rad: float = math.radians(10.0)  # 6D only (8.1.2)
     max_roll_pitch_final_rad: float = math.radians(1.0)  # 6D only (8.1.2)
     sigma_bound: float = 2.0  # hypotheses must lie within this many relative sigmas of the graph
+    sigma_scale: float = 1.0  # multiplies the graph's relative sigmas (eq. 6.1-6.4 and the checks)
     # refinement and acceptance
     icp_max_distance_m: float = 0.25
     icp_iterations: int = 40
@@ -160,7 +161,7 @@ def _lrf(cloud: np.ndarray, tree: cKDTree, centers: np.ndarray, radius: float) -
         d = cloud[nb] - c
         w = radius - np.linalg.norm(d, axis=1)
         M = (d * w[:, None]).T @ d / max(w.sum(), 1e-12)
-        _, vec = np.linalg.eigh(M)
+        vec = np.linalg.eigh(M)[1]
         x, z = vec[:, 2], vec[:, 0]
         if np.sum(d @ x >= 0) < len(d) / 2:
             x = -x
@@ -379,7 +380,8 @@ def evaluate_pair(ka: Keypoints, kb: Keypoints, S_a: np.ndarray, S_b: np.ndarray
     if ka.key[0] == kb.key[0] and abs(ka.key[1] - kb.key[1]) == 1:
         return "consecutive"
     R = S_b[:3, :3]
-    sigma = np.sqrt(np.maximum(np.diag(R @ cov_ab[3:, 3:] @ R.T), 0.0))  # in the map frame
+    cov_t = params.sigma_scale**2 * cov_ab[3:, 3:]
+    sigma = np.sqrt(np.maximum(np.diag(R @ cov_t @ R.T), 0.0))  # in the map frame
     ba, bb = _box(ka, S_a), _box(kb, S_b)
     overlap = np.minimum(ba[2:], bb[2:]) - np.maximum(ba[:2], bb[:2]) + 2 * sigma[:2]  # eq. 6.1
     if np.any(overlap <= 0) or overlap[0] * overlap[1] <= params.min_overlap_m2:  # eq. 6.2
@@ -391,7 +393,7 @@ def evaluate_pair(ka: Keypoints, kb: Keypoints, S_a: np.ndarray, S_b: np.ndarray
     return Candidate(
         pair_key(ka.key, kb.key),
         area,
-        np.sqrt(np.maximum(np.diag(R_a.T @ R @ cov_ab[3:, 3:] @ R.T @ R_a), 0.0)),
+        np.sqrt(np.maximum(np.diag(R_a.T @ R @ cov_t @ R.T @ R_a), 0.0)),
         params.alpha * area + float(sigma.sum()),
     )
 

@@ -144,7 +144,7 @@ def test_batch_file_errors_name_the_key(tmp_path, fields, expected):
 def test_check_names_every_invalid_variant_and_runs_nothing(tmp_path):
     variants = [
         SLOW_FAST[0],
-        {"label": "six_d", "set": {"slam.matching.mode": "6d"}},  # a component that does not exist
+        {"label": "five_d", "set": {"slam.matching.mode": "5d"}},  # a mode that does not exist
         {"label": "nobody", "robots": ["rover", "ghost"]},
         {"label": "moon_laser", "set": {"comms.preset": "moon_laser"}},
     ]
@@ -152,7 +152,7 @@ def test_check_names_every_invalid_variant_and_runs_nothing(tmp_path):
     result = invoke("batch", path, "--out", tmp_path / "out")
     assert result.exit_code == 2, result.output
     text = result.text
-    assert "variant six_d: invalid scenario" in text and "slam.matching: unknown key" in text
+    assert "variant five_d: invalid scenario" in text and "slam.matching.mode" in text and "'4d'" in text
     assert "variant nobody: invalid scenario" in text and "no robot named 'ghost'" in text
     assert "variant moon_laser: invalid scenario" in text and "moon_laser" in text and "spacebotcamp" in text
     assert "variant slow" not in text and "3 of 4 variants invalid; nothing was run" in text

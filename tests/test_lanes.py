@@ -69,3 +69,18 @@ def test_measured_model_scales_wall_time():
 def test_unknown_stage_is_named():
     with pytest.raises(KeyError, match="known stages"):
         ComputeModel(ComputeConfig()).cost("teleport", 0.0)
+
+
+def test_realtime_job_preempts_a_long_background_job():
+    """A 5 s background job (submap matching) on one core is preempted by a real-time job
+    submitted meanwhile, and finishes later by the real-time job's compute time."""
+    env = simpy.Environment()
+    lane = make_lane(env, stages={"matching_s": 5.0, "strapdown_s": 0.01})
+    done = []
+    lane.submit("matching", lambda: "match", lambda r, t: done.append((r, t)), priority=Priority.BACKGROUND)
+    env.run(until=1.0)
+    lane.submit("strapdown", lambda: "imu", lambda r, t: done.append((r, t)))
+    env.run()
+    assert done[0] == ("imu", pytest.approx(1.01))
+    assert done[1] == ("match", pytest.approx(5.01))
+    assert lane.utilization(5.01)[Device.CPU] == pytest.approx(1.0)

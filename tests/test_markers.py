@@ -348,8 +348,8 @@ def test_constant_and_quadratic_models():
     for d in (0.0, 1.5, 4.0):
         np.testing.assert_allclose(detection_covariance("quadratic", d), SIGMA_CONSTANT * (1 + d) ** 2)  # eq. 8.2
     np.testing.assert_array_equal(detection_covariance("constant", 10.0), SIGMA_CONSTANT)
-    with pytest.raises(MarkerException, match="unknown uncertainty model 'lut'"):
-        detection_covariance("lut", 1.0)
+    with pytest.raises(MarkerException, match="unknown uncertainty model 'cubic'"):
+        detection_covariance("cubic", 1.0)
     with pytest.raises(MarkerException, match="distance_m"):
         detection_covariance(UncertaintyModel.QUADRATIC, -1.0)
     with pytest.raises(MarkerException, match="distance_m"):
