@@ -208,3 +208,47 @@ def test_params_validation():
     with pytest.raises(ValueError, match="alpha=-1"):
         MatcherParams(alpha=-1)
     assert MatcherParams(mode="6d").mode is MatchMode.SIX_D
+
+
+def _chain(graph, robot: str, target: np.ndarray, frames: int, sigma_m: float) -> None:
+    """Frame switches 0 -> ``frames`` of ``robot`` whose last origin lands on ``target``,
+    each with ``sigma_m`` translation and 1 deg yaw standard deviation."""
+    cov = np.diag([1e-6, 1e-6, math.radians(1) ** 2] + [sigma_m**2] * 3)
+    T_step = transform(rot_z(yaw_of(target[:3, :3]) / frames), target[:3, 3] / frames)
+    first = target @ np.linalg.inv(np.linalg.matrix_power(T_step, frames - 1))  # s0 -> s1 carries the rest
+    for k in range(frames):
+        graph.add_frame_switch(robot, k, float(k), first if k == 0 else T_step, cov)
+
+
+def test_team_matcher_pairs_from_the_graph_and_its_closure_corrects_it(rendered):
+    """Pairing with the graph's joint marginals (eq. 6.1-6.4), matching against the
+    graph's prior, and the c factor pulling the graph toward the true relative pose."""
+    from slam.graph import MultiRobotGraph
+    from slam.team_matcher import TeamMatcher
+
+    (A, O_a), (B, O_b), _, _ = rendered
+    graph = MultiRobotGraph("lru1")
+    _chain(graph, "lru1", O_a, 3, 0.05)
+    drift = transform(rot_z(math.radians(2)), [0.25, -0.15, 0.0])
+    _chain(graph, "lru2", O_b @ drift, 7, 0.05)
+    graph.add_match("lru1", 0, "lru2", 0, np.eye(4), np.diag([1e-4] * 3 + [0.01] * 3))  # lru2 starts where lru1 did
+    graph.update()
+    T_true = np.linalg.inv(O_a) @ O_b
+    before, _ = errors(np.linalg.inv(graph.submap_origin("lru1", 3)) @ graph.submap_origin("lru2", 7), T_true)
+    assert before > 0.2
+
+    matcher = TeamMatcher(MatcherParams(stereo_error_m=0.094))
+    matcher.add_submap(A)
+    matcher.add_submap(B)
+    assert matcher.pair(graph) == 1
+    cand = matcher.next_candidate()
+    assert cand.pair == (A.key, B.key) and np.all(cand.sigma_xyz[:2] > 0.1)
+    record = matcher.attempt(cand, 10.0)
+    assert record.result.success, record.result.reason
+    assert errors(record.result.T_a_b, T_true)[0] < 0.1
+    assert matcher.next_candidate() is None  # tried once
+
+    graph.add_match("lru1", record.frame_a, "lru2", record.frame_b, record.result.T_a_b, record.result.cov)
+    graph.update()
+    after, _ = errors(np.linalg.inv(graph.submap_origin("lru1", 3)) @ graph.submap_origin("lru2", 7), T_true)
+    assert after < 0.1 < before
