@@ -62,13 +62,13 @@ class MatcherParams:
     min_points: int = 1000
     min_obstacle_points: int = 100
     keypoint_resolution_m: float = 0.1
-    min_known_fraction: float = 0.5  # of the voxels in the descriptor sphere (thesis 0.8; see docs/slam.md)
+    min_known_fraction: float = 0.5  # of the voxels in the descriptor sphere (thesis 0.8; see docs/matching.md)
     line_distance_m: float = 0.5
     min_off_line_keypoints: int = 10
     # pairing (eq. 6.1-6.4)
     min_overlap_m2: float = 2.0
     alpha: float = 0.125
-    stereo_error_m: float = 0.12  # right side of eq. 6.3 (thesis: LRU at 4 m); see docs/slam.md
+    stereo_error_m: float = 0.12  # right side of eq. 6.3 (thesis: LRU at 4 m); see docs/matching.md
     # features and correspondences
     descriptor_radius_m: float = 0.4
     normal_radius_m: float = 0.2  # thesis r = 0.2 m for normals, frames and descriptors
@@ -215,8 +215,7 @@ def hough_clusters(scene: Keypoints, model: Keypoints, corr: np.ndarray, params:
     local = np.einsum("nij,nj->ni", model.frames[corr[:, 1]], ref - model.points[corr[:, 1]])
     votes = scene.points[corr[:, 0]] + np.einsum("nji,nj->ni", scene.frames[corr[:, 0]], local)
     cells = np.floor(votes / params.hough_bin_m).astype(np.int64)
-    uniq, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
+    uniq, counts = np.unique(cells, axis=0, return_counts=True)
     lookup = {tuple(c): n for c, n in zip(uniq, counts)}
     offsets = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)]
     support = np.array([sum(lookup.get((c[0] + i, c[1] + j, c[2] + k), 0) for i, j, k in offsets) for c in uniq])
