@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from sim import evaluation
+from sim.slam_results import detection_truth
 from slam.registration import yaw_of
 
 SIGMA_LEVELS = (1, 2, 3)
@@ -103,18 +104,11 @@ def detection_calibration(
 ) -> dict[str, Any]:
     """Each detection's error in its own covariance's frame (right perturbation of the
     target pose in the detector's body), per component over the predicted sigmas."""
-    t_own, X_own = gt_world[name]
     norm, count = [], 0
     for d in onboard.agent.detections:
-        A = _truth_at(t_own, X_own, d.t)
-        if d.target.startswith("landmark:"):
-            if landmark_world is None:
-                continue
-            target = landmark_world
-        else:
-            t_peer, X_peer = gt_world[d.target]
-            target = _truth_at(t_peer, X_peer, d.t)
-        true = np.linalg.solve(A, target)
+        true = detection_truth(name, d, gt_world, landmark_world)
+        if true is None:
+            continue
         D = np.linalg.solve(d.T_detector_target, true)  # T^-1 T_true = Exp(xi)
         w = _rotvec(D[:3, :3])
         xi = np.concatenate([w, D[:3, 3]])

@@ -141,6 +141,20 @@ def _graph_metrics(agent) -> dict[str, Any]:
     }
 
 
+def detection_truth(name: str, d, gt_world, landmark_world: np.ndarray | None) -> np.ndarray | None:
+    """The true pose of a detection's target in the detector's body frame at its time
+    (None for a landmark when the run has none)."""
+    t_own, X_own = gt_world[name]
+    if d.target.startswith("landmark:"):
+        if landmark_world is None:
+            return None
+        target = landmark_world
+    else:
+        t_peer, X_peer = gt_world[d.target]
+        target = _truth_at(t_peer, X_peer, d.t)
+    return np.linalg.solve(_truth_at(t_own, X_own, d.t), target)
+
+
 def _detection_metrics(name: str, agent, gt_world, landmark_world: np.ndarray | None) -> dict[str, Any]:
     """Each detection against the true pose of its target in the detector's body frame."""
     stats = agent.stats
@@ -150,18 +164,11 @@ def _detection_metrics(name: str, agent, gt_world, landmark_world: np.ndarray | 
         "rejected": dict(stats.detections_rejected),
         "unanswerable": stats.unanswerable,
     }
-    t_own, X_own = gt_world[name]
     trans, rot, sigma = [], [], []
     for d in agent.detections:
-        A = _truth_at(t_own, X_own, d.t)
-        if d.target.startswith("landmark:"):
-            if landmark_world is None:
-                continue
-            target = landmark_world
-        else:
-            t_peer, X_peer = gt_world[d.target]
-            target = _truth_at(t_peer, X_peer, d.t)
-        true = np.linalg.solve(A, target)
+        true = detection_truth(name, d, gt_world, landmark_world)
+        if true is None:
+            continue
         trans.append(np.linalg.norm(d.T_detector_target[:3, 3] - true[:3, 3]))
         rot.append(_rotation_deg(d.T_detector_target[:3, :3].T @ true[:3, :3]))
         sigma.append(np.sqrt(np.trace(d.cov[3:, 3:]) / 3))

@@ -47,6 +47,9 @@ def test_short_run_writes_every_result_file(tmp_path):
         m = metrics["robots"][r]
         assert m["camera_frames"] >= 10  # 5 Hz for 2 s, first frame at t = 0
         assert m["lane"]["stages"]["stereo"]["completed"] > 0
+    lc = metrics["loop_closures"]  # evaluated, not failed (a failure leaves a status)
+    assert set(lc["robots"]) == set(robots) and "status" not in lc
+    assert lc["robots"]["lru1"]["matches"]["mode"] == "4d" and lc["team"]["matches"] == 0
     tum = np.loadtxt(out / "trajectories" / "lru1.gt.tum")
     assert tum.shape[1] == 8 and np.allclose(np.linalg.norm(tum[:, 4:], axis=1), 1, atol=1e-6)
     sensors = np.load(out / "sensors" / "lru1.npz")
