@@ -82,13 +82,15 @@ class _TagScene:
         self.cam = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, "cam")
         self.K = np.array([[focal_px, 0, (width - 1) / 2], [0, focal_px, (height - 1) / 2], [0, 0, 1.0]])
 
-    def render(self, distance_m: float, angle_rad: float, blur_sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, distance_m: float, angle_rad: float, blur_sigma_px: float, roll_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Grey image and the true T_cam_marker: the tag ``distance_m`` ahead, its face
-        turned ``angle_rad`` away from the camera about its vertical axis."""
+        turned ``angle_rad`` away from the camera about its vertical axis, then turned
+        ``roll_rad`` in its own plane (about its normal; the tables use none)."""
         c, s = math.cos(angle_rad), math.sin(angle_rad)
         z = np.array([-c, -s, 0.0])  # face normal: towards the camera, turned about world z
         y = np.array([0.0, 0.0, 1.0])
-        R = np.column_stack([np.cross(y, z), y, z])
+        cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+        R = np.column_stack([np.cross(y, z), y, z]) @ np.array([[cr, -sr, 0.0], [sr, cr, 0.0], [0.0, 0.0, 1.0]])
         q = np.zeros(4)
         mujoco.mju_mat2Quat(q, R.ravel())
         self.data.mocap_pos[0], self.data.mocap_quat[0] = [distance_m, 0.0, CAMERA_HEIGHT_M], q

@@ -143,8 +143,11 @@ def postprocess(raw: np.ndarray) -> np.ndarray:
     cells stay missing); then the missing cells are filled:
     along each distance row, cells past the last valid angle take that border value (and
     before the first valid angle, the first; holes between valid angles are interpolated
-    linearly, which the thesis does not mention); rows with no valid cell take, per angle
-    column, the maximum of the last 10 % (at least one) of the valid values above them."""
+    linearly, which the thesis does not mention); rows with no valid cell beyond the
+    first detected distance take, per angle column, the maximum of the last 10 % (at
+    least one) of the valid rows before them; rows nearer than the first detected
+    distance (a large tag overfilling the image) take that first row, the border value,
+    as along the rows (the thesis's tables start where tags are detected)."""
     raw = np.asarray(raw, dtype=float)
     valid = np.isfinite(raw[..., 0])
     n_d, n_a, n_c = raw.shape
@@ -162,9 +165,12 @@ def postprocess(raw: np.ndarray) -> np.ndarray:
     for i in range(n_d):
         if valid[i].any():
             continue
-        above = filled_rows[filled_rows < i] if (filled_rows < i).any() else filled_rows
-        if above.size == 0:
+        if filled_rows.size == 0:
             raise MarkerException("the table has no detected cell to fill from")
+        above = filled_rows[filled_rows < i]
+        if above.size == 0:
+            out[i] = out[filled_rows[0]]
+            continue
         last = above[-max(1, math.ceil(0.1 * above.size)) :]
         out[i] = np.max(out[last], axis=0)
     return out
