@@ -16,29 +16,21 @@ from typing import Any
 import numpy as np
 
 from sim import evaluation
-from sim.slam_results import detection_truth
+from sim.slam_results import detection_truth, rotation_deg, truth_at
+from slam.lie import so3_log
 from slam.registration import yaw_of
 
 SIGMA_LEVELS = (1, 2, 3)
-
-
-def _truth_at(gt_t: np.ndarray, gt_world: np.ndarray, t: float) -> np.ndarray:
-    i = min(int(np.searchsorted(gt_t, t - 1e-9)), len(gt_t) - 1)
-    return gt_world[i]
 
 
 def origin_truth(onboard, gt_t: np.ndarray, gt_world: np.ndarray) -> dict[int, np.ndarray]:
     """Frame index -> true world pose of that local frame's origin (gravity-aligned)."""
     if not onboard.log.t:
         return {}
-    out = {0: evaluation.gravity_aligned(_truth_at(gt_t, gt_world, onboard.log.t[0]))}
+    out = {0: evaluation.gravity_aligned(truth_at(gt_t, gt_world, onboard.log.t[0]))}
     for s in onboard.estimator.switches:
-        out[s.frame_index] = evaluation.gravity_aligned(_truth_at(gt_t, gt_world, s.t))
+        out[s.frame_index] = evaluation.gravity_aligned(truth_at(gt_t, gt_world, s.t))
     return out
-
-
-def _rotation_deg(R: np.ndarray) -> float:
-    return math.degrees(math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
 def calibration(normalised: np.ndarray) -> dict[str, float]:
@@ -83,7 +75,7 @@ def match_metrics(name: str, onboard, origins: dict[str, dict[int, np.ndarray]])
         e_t, e_yaw = float(np.linalg.norm(D[:3, 3])), abs(yaw_of(D[:3, :3]))
         trans.append(e_t)
         yaw.append(math.degrees(e_yaw))
-        rot.append(_rotation_deg(D[:3, :3]))
+        rot.append(rotation_deg(D[:3, :3]))
         prior_trans.append(float(np.linalg.norm(rec.prior.T_a_b[:3, 3] - true[:3, 3])))
         sigma = np.sqrt(np.diag(res.cov))
         norm += list(D[:3, 3] / sigma[3:]) + [yaw_of(D[:3, :3]) / sigma[2]]
@@ -110,18 +102,11 @@ def detection_calibration(
         if true is None:
             continue
         D = np.linalg.solve(d.T_detector_target, true)  # T^-1 T_true = Exp(xi)
-        w = _rotvec(D[:3, :3])
+        w = so3_log(D[:3, :3])
         xi = np.concatenate([w, D[:3, 3]])
         norm += list(xi / np.sqrt(np.diag(d.cov)))
         count += 1
     return {"count": count, "calibration": calibration(np.asarray(norm))}
-
-
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    angle = math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)))
-    if angle < 1e-12:
-        return np.zeros(3)
-    return angle / (2 * math.sin(angle)) * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
 
 
 def loop_closure_section(run, gt_world: dict[str, tuple[np.ndarray, np.ndarray]], landmark_world: np.ndarray | None) -> dict[str, Any] | None:

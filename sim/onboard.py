@@ -172,9 +172,7 @@ class SlamLog:
 class OnboardStack:
     """Feeds a robot's sensors into its :class:`LocalEstimator` through its lane."""
 
-    def __init__(
-        self, scenario: Scenario, robot: Robot, lane: Lane, imu_spec: ImuSpec, gravity: float, markers: list[TeamMarker]
-    ):
+    def __init__(self, scenario: Scenario, robot: Robot, lane: Lane, imu_spec: ImuSpec, gravity: float, markers: list[TeamMarker]):
         cfg = scenario.slam
         self.robot = robot
         self.lane = lane
@@ -234,20 +232,22 @@ class OnboardStack:
     def _schedule_matching(self) -> None:
         """Submap matching (thesis 6.1) as one background job at a time: ``pairing`` when
         submaps arrived or a loop closure changed the graph, else ``matching`` of the
-        best queued pair, announced to the team when the job starts."""
+        best queued pair, which is announced to the team as soon as it is taken."""
         matcher = self.agent.matcher
         if matcher is None or self._matching_queued or not matcher.has_work:
             return
         self._matching_queued = True
         if matcher.pairing_due:
             self.lane.submit("pairing", work=self.agent.pair_submaps, on_done=self._matching_done, priority=Priority.BACKGROUND)
-        else:
-            self.lane.submit("matching", work=lambda: self._match(self.lane.env.now), on_done=self._matching_done, priority=Priority.BACKGROUND)
-
-    def _match(self, now: float) -> list[Outgoing]:
+            return
         announce, cand = self.agent.begin_match()
+        if cand is None:  # every queued pair was taken by a peer meanwhile
+            self._matching_queued = False
+            return
         self._send(announce)
-        return [] if cand is None else self.agent.finish_match(cand, now)[0]
+        self.lane.submit(
+            "matching", work=lambda: self.agent.finish_match(cand, self.lane.env.now)[0], on_done=self._matching_done, priority=Priority.BACKGROUND
+        )
 
     def _matching_done(self, out, _t: float) -> None:
         self._matching_queued = False
@@ -255,9 +255,7 @@ class OnboardStack:
 
     def _deliver(self, delivery: Delivery) -> None:
         payload = delivery.message.payload
-        self.lane.submit(
-            "messages", work=lambda: self.agent.receive(payload), on_done=lambda out, t: self._send(out), priority=Priority.BACKGROUND
-        )
+        self.lane.submit("messages", work=lambda: self.agent.receive(payload), on_done=lambda out, t: self._send(out), priority=Priority.BACKGROUND)
 
     def _schedule_graph(self) -> None:
         """One background iSAM2 job at a time, whenever factors arrived."""
@@ -290,9 +288,7 @@ class OnboardStack:
             cfg = self.slam_cfg
             self.lane.submit(
                 "filter_update",
-                work=lambda: self.estimator.on_wheel_odometry(
-                    v_body, cfg.wheel_speed_std_mps, cfg.wheel_yaw_rate_std_rps, cfg.wheel_vz_std_mps
-                ),
+                work=lambda: self.estimator.on_wheel_odometry(v_body, cfg.wheel_speed_std_mps, cfg.wheel_yaw_rate_std_rps, cfg.wheel_vz_std_mps),
             )
 
     def capture(self, frame_id: int, now: float, T_body_cam: np.ndarray) -> None:

@@ -27,7 +27,7 @@ FACTOR_COLOURS = {"prior": "k", "w": "tab:blue", "v": "tab:cyan", "u": "tab:oliv
 LOOP_CLOSURE_TYPES = {"d": "robot_detection", "c": "submap_match", "o": "landmark"}
 
 
-def _truth_at(gt_t: np.ndarray, gt_world: np.ndarray, t: float) -> np.ndarray:
+def truth_at(gt_t: np.ndarray, gt_world: np.ndarray, t: float) -> np.ndarray:
     """True body pose at ``t`` (ground truth is sampled on the same clock)."""
     i = min(int(np.searchsorted(gt_t, t - 1e-6)), len(gt_t) - 1)
     return gt_world[i]
@@ -37,7 +37,7 @@ def _stats(values: np.ndarray) -> dict[str, float]:
     return {"mean": float(np.mean(values)), "median": float(np.median(values)), "max": float(np.max(values)), "final": float(values[-1])}
 
 
-def _rotation_deg(R: np.ndarray) -> float:
+def rotation_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.linalg.norm(so3_log(R))))
 
 
@@ -104,10 +104,10 @@ def _beliefs(slog, gt_world, T_world_map: np.ndarray) -> dict[str, Any]:
         t_peer, X_peer = gt_world[peer]
         err, yaw, err_now, age = [], [], [], []
         for t, t_est, B in samples:
-            true = np.linalg.solve(T_world_map, _truth_at(t_peer, X_peer, t_est))
+            true = np.linalg.solve(T_world_map, truth_at(t_peer, X_peer, t_est))
             err.append(np.linalg.norm(B[:3, 3] - true[:3, 3]))
             yaw.append(abs(evaluation.wrap(evaluation.yaw_of(B[:3, :3]) - evaluation.yaw_of(true[:3, :3]))))
-            now = np.linalg.solve(T_world_map, _truth_at(t_peer, X_peer, t))
+            now = np.linalg.solve(T_world_map, truth_at(t_peer, X_peer, t))
             err_now.append(np.linalg.norm(B[:3, 3] - now[:3, 3]))
             age.append(t - t_est)
         out[peer] = {
@@ -151,8 +151,8 @@ def detection_truth(name: str, d, gt_world, landmark_world: np.ndarray | None) -
         target = landmark_world
     else:
         t_peer, X_peer = gt_world[d.target]
-        target = _truth_at(t_peer, X_peer, d.t)
-    return np.linalg.solve(_truth_at(t_own, X_own, d.t), target)
+        target = truth_at(t_peer, X_peer, d.t)
+    return np.linalg.solve(truth_at(t_own, X_own, d.t), target)
 
 
 def _detection_metrics(name: str, agent, gt_world, landmark_world: np.ndarray | None) -> dict[str, Any]:
@@ -170,7 +170,7 @@ def _detection_metrics(name: str, agent, gt_world, landmark_world: np.ndarray | 
         if true is None:
             continue
         trans.append(np.linalg.norm(d.T_detector_target[:3, 3] - true[:3, 3]))
-        rot.append(_rotation_deg(d.T_detector_target[:3, :3].T @ true[:3, :3]))
+        rot.append(rotation_deg(d.T_detector_target[:3, :3].T @ true[:3, :3]))
         sigma.append(np.sqrt(np.trace(d.cov[3:, 3:]) / 3))
     if trans:
         trans, sigma = np.asarray(trans), np.asarray(sigma)
