@@ -33,12 +33,12 @@ regress: setup
 	$(BIN)/marsyard regress
 
 bench: setup
-	$(BIN)/python -m sim.bench scenarios/quickstart.yaml --out results/bench
-	$(BIN)/python -m sim.bench scenarios/etna_two_rovers.yaml --variants no_depth_truth --out results/bench/etna
+	$(BIN)/python -m sim.tools.bench scenarios/quickstart.yaml --out results/bench
+	$(BIN)/python -m sim.tools.bench scenarios/etna_two_rovers.yaml --variants no_depth_truth --out results/bench/etna
 	$(BIN)/python -m comms.bench --out results/bench/comms.json
 	$(BIN)/python -m slam.bench --out results/bench/graph.json
-	$(BIN)/python -m sim.match_bench --out results/bench/matching.json
-	$(BIN)/python -m sim.batch_bench --out results/bench/batch.json
+	$(BIN)/python -m sim.tools.match_bench --out results/bench/matching.json
+	$(BIN)/python -m sim.tools.batch_bench --out results/bench/batch.json
 
 lint: setup
 	$(BIN)/ruff check sim slam comms tests

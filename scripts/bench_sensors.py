@@ -2,7 +2,7 @@
 
     .venv/bin/python scripts/bench_sensors.py [--size 40] [--poses 8] [--frames 20]
 
-Builds sim.terrain's default terrain (40 m, 0.1 m grid, craters, rocks, 2048 px albedo),
+Builds sim.world.terrain's default terrain (40 m, 0.1 m grid, craters, rocks, 2048 px albedo),
 puts an LRU-like stereo head (1.2 m, 20 deg down, b = 9 cm, 50.6 deg) at several
 poses and reports, per resolution: stereo pairs rendered per second with and without
 ground-truth depth (median time per pair, interleaved), SGBM milliseconds per pair (median), and SGBM depth error against the
@@ -25,10 +25,10 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
-from sim.camera_rig import StereoRig
+from sim.world.camera_rig import StereoRig
 from sim.scenario import CameraConfig, TerrainConfig
-from sim.sensors import StereoRenderer
-from sim.terrain import add_terrain, generate_terrain
+from sim.world.sensors import StereoRenderer
+from sim.world.terrain import add_terrain, generate_terrain
 from slam.stereo import StereoCalibration, StereoMatcher
 from stereo_scenes import BASELINE_M, HEAD_HEIGHT_M, HEAD_PITCH_DEG
 

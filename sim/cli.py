@@ -1,4 +1,4 @@
-"""``marsyard`` command line: a thin shell over :mod:`sim.runner` and :mod:`sim.results`."""
+"""``marsyard`` command line: a thin shell over :mod:`sim.run.runner` and :mod:`sim.evaluation.results_folder`."""
 
 from __future__ import annotations
 
@@ -95,8 +95,8 @@ def run(
     progress: Annotated[bool, typer.Option(help="show the progress bar")] = True,
 ) -> None:
     """Run a scenario and write its results folder."""
-    from sim import results
-    from sim.run_folder import RunSetupError, run_to_folder
+    from sim.evaluation import results_folder
+    from sim.run.run_folder import RunSetupError, run_to_folder
 
     overrides = list(set_ or []) + ([f"seed={seed}"] if seed is not None else [])
     sc = _load(scenario, overrides)
@@ -109,7 +109,7 @@ def run(
         err_console.print(f"[red]could not set up the run; traceback in {exc.error_file}[/]")
         raise typer.Exit(1) from None
     failed = metrics["status"] == "failed"
-    for line in results.summary_lines(metrics):
+    for line in results_folder.summary_lines(metrics):
         console.print(line)
     if failed:
         err_console.print(f"[bold red]run failed[/]: {metrics['error']} (traceback in {out / 'error.txt'}; partial results kept)")
@@ -122,7 +122,7 @@ def run(
 
 
 def _load_batch(batch_file: Path, overrides: list[str], seeds: int | None):
-    from sim.batch import BatchError, check, load_batch
+    from sim.batch.spec import BatchError, check, load_batch
 
     try:
         batch = load_batch(batch_file, overrides, seeds)
@@ -158,7 +158,7 @@ class _BatchCommand(TyperCommand):
 
 @app.command(cls=_BatchCommand)
 def batch(
-    batch_file: Annotated[Path, typer.Argument(help="batch YAML (see sim/batch.py)")],
+    batch_file: Annotated[Path, typer.Argument(help="batch YAML (see sim/batch/spec.py)")],
     out: Annotated[Path | None, typer.Option("--out", help="batch folder (default results/batches/<name>)")] = None,
     workers: Annotated[
         int | None, typer.Option("--workers", min=1, help="runs at a time (default: CPU count; with --ray ADDRESS: the cluster's CPUs)")
@@ -178,7 +178,7 @@ def batch(
     """Run a Monte-Carlo batch (seeds x variants), then write its tables, plots and report."""
     from rich.progress import MofNCompleteColumn, SpinnerColumn
 
-    from sim import aggregate, batch_exec
+    from sim.batch import execute, report
 
     spec = _load_batch(batch_file, set_ or [], seeds)
     runs = spec.specs()
@@ -192,7 +192,7 @@ def batch(
             )
         return
     out = out or Path("results") / "batches" / spec.config.name
-    index, todo = batch_exec.plan(spec, out, resume, retry_failed)
+    index, todo = execute.plan(spec, out, resume, retry_failed)
     where = "local process pool" if ray is None else "local Ray" if ray == "local" else f"Ray cluster {ray}"
     console.print(f"{spec.config.name}: {len(runs)} runs, {len(todo)} to do ({where}) -> {out}/")
     counts = {"completed": 0, "not completed": 0}
@@ -209,7 +209,7 @@ def batch(
     ) as bar:
         task = bar.add_task(spec.config.name, total=len(runs), completed=len(runs) - len(todo), counts="", eta="-")
 
-        def finished(run: batch_exec.RunSpec, outcome: batch_exec.Outcome) -> None:
+        def finished(run: execute.RunSpec, outcome: execute.Outcome) -> None:
             ok = outcome.status == "completed"
             counts["completed" if ok else "not completed"] += 1
             mark = "[green]ok[/]" if ok else f"[red]{outcome.status}[/]"
@@ -219,16 +219,16 @@ def batch(
             bar.update(task, advance=1, counts=f"{counts['completed']} ok, {counts['not completed']} not", eta=eta)
 
         try:
-            batch_exec.execute(
+            execute.execute(
                 index, todo, workers=workers, use_ray=ray is not None, ray_address=None if ray in (None, "local") else ray, on_finish=finished
             )
         except KeyboardInterrupt:
             bar.stop()
             err_console.print(f"[bold red]interrupted[/]: runs in progress are pending again; continue with `marsyard batch {batch_file} --resume`")
             raise typer.Exit(130) from None
-    report_path = aggregate.write_report(out)
+    report_path = report.write_report(out)
     statuses = [r["status"] for r in index.runs.values()]
-    console.print(f"{statuses.count('completed')}/{len(statuses)} runs completed; index {out / batch_exec.INDEX}; report {report_path}")
+    console.print(f"{statuses.count('completed')}/{len(statuses)} runs completed; index {out / execute.INDEX}; report {report_path}")
     if statuses.count("completed") < len(statuses):
         raise typer.Exit(1)
 
@@ -241,7 +241,7 @@ def marker_lut(
     angles: Annotated[int, typer.Option("--angles", min=3, help="grid size in view angle")] = 23,
 ) -> None:
     """Build the marker error lookup tables (thesis 6.2.3) a scenario needs, under assets/marker_lut/."""
-    from sim import marker_lut as ml
+    from sim.tools import marker_lut as ml
 
     sc = _load(scenario, [])
     t0 = time.perf_counter()
@@ -255,10 +255,10 @@ def report(
     metric: Annotated[list[str] | None, typer.Option("--metric", help="metric to summarise and plot (repeatable; default: the batch file's)")] = None,
 ) -> None:
     """Regenerate a batch's tables, plots and report.md from its run folders."""
-    from sim import aggregate
+    from sim.batch import report
 
     try:
-        path = aggregate.write_report(batch_dir, metric or None)
+        path = report.write_report(batch_dir, metric or None)
     except FileNotFoundError as exc:
         err_console.print(f"[red]{exc}[/]")
         raise typer.Exit(2) from None
@@ -278,7 +278,7 @@ def regress(
     """Run the canonical scenarios and compare tracked metrics with the committed baselines (exit 1 if worse)."""
     from rich.table import Table
 
-    from sim import regress as rg
+    from sim.batch import regress as rg
 
     directory = baselines or rg.BASELINES
     try:

@@ -1,6 +1,6 @@
 """The learned uncertainty model of marker detections (thesis 6.2.3, eq. 6.9, 8.1.3): a
 lookup table of maximum pose errors over distance and view angle, precomputed from
-rendered markers (``sim.marker_lut`` builds it), and the online simulation of corner
+rendered markers (``sim.tools.marker_lut`` builds it), and the online simulation of corner
 errors through the PnP solver; the standard deviations of a detection are the larger
 of the two, and detections with a rotational sigma above 75 deg are rejected.
 

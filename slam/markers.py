@@ -14,7 +14,7 @@ off by default: on 400 noisy synthetic tags and on the rendered ones it changed 
 pose errors by less than 3 %, and with 4 corners it can trade the tilt for a perfect fit
 of biased corners (1.4 deg became 10 deg on one warped tag).
 
-Measured on MuJoCo-rendered 15 cm tags (``sim.markers``), 320x240, 50 deg hfov, 40
+Measured on MuJoCo-rendered 15 cm tags (``sim.world.markers``), 320x240, 50 deg hfov, 40
 views up to 50 deg off the tag normal: detected 40/40 at 2 m, 39/40 at 3 m, 31/40 at
 4 m (sides 8-13 px); translation error median 0.07 / 0.17 / 0.95 cm, rotation error
 median 0.06 / 0.28 / 0.81 deg, no mirrored pose chosen.
@@ -24,7 +24,7 @@ Conventions (design notes §3):
 - camera frame as OpenCV: x right, y down, z forward; pixel centres at integer
   coordinates (the convention of ``K``);
 - marker frame: origin at the tag centre, x to the right of the printed tag, y up,
-  z out of the printed face (the frame of ``sim.markers``); corners in ``cv2.aruco``
+  z out of the printed face (the frame of ``sim.world.markers``); corners in ``cv2.aruco``
   order (top-left, top-right, bottom-right, bottom-left of the printed tag), i.e.
   marker coordinates ``(-s/2, s/2), (s/2, s/2), (s/2, -s/2), (-s/2, -s/2)``, with
   ``s`` the edge of the black square;

@@ -5,7 +5,7 @@ the robot announces to the team (a match attempt) before matching it. The agent 
 successes into loop closure messages (``c`` factors, 4.2.2).
 
 The thesis runs the two sides as threads of a low-priority process; here they are the
-lane's background jobs ``pairing`` and ``matching`` (see ``sim.onboard``).
+lane's background jobs ``pairing`` and ``matching`` (see ``sim.run.onboard``).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ import cv2
 import mujoco
 import numpy as np
 
-from sim.camera_rig import StereoRig
+from sim.world.camera_rig import StereoRig
 from sim.scenario import CameraConfig
 
 HEAD_HEIGHT_M = 1.2
@@ -90,11 +90,11 @@ def textured_heightfield_scene(width: int, height: int, seed: int = 0, size_m: f
 
 
 def procedural_terrain_scene(width: int, height: int, seed: int = 3, size_m: float = 20.0):
-    """The same head over sim.terrain's heightfield, rocks and regolith albedo."""
+    """The same head over sim.world.terrain's heightfield, rocks and regolith albedo."""
     from dm_control import mjcf
 
     from sim.scenario import TerrainConfig
-    from sim.terrain import add_terrain, generate_terrain
+    from sim.world.terrain import add_terrain, generate_terrain
 
     cfg = TerrainConfig.model_validate(
         {"size_m": size_m, "craters": {"count": 2}, "rocks": {"count": 8}, "texture": {"size_px": 1024}}

@@ -10,9 +10,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from sim import aggregate
-from sim.batch import BatchError, check, load_batch, override
-from sim.batch_exec import execute, plan, read_index
+from sim.batch import report
+from sim.batch.execute import execute, plan, read_index
+from sim.batch.spec import BatchError, check, load_batch, override
 
 runner = CliRunner()
 
@@ -68,7 +68,7 @@ def table(rows: list[tuple]) -> pd.DataFrame:
 def test_summary_statistics_on_a_hand_made_table():
     rows = [("a", 0, "r", "completed", 1.0), ("a", 1, "r", "completed", 2.0), ("a", 2, "r", "completed", 6.0)]
     rows += [("a", 3, "r", "failed", 100.0), ("b", 0, "r", "completed", 4.0)]
-    summary = aggregate.summarize(table(rows), ["m"]).set_index("variant")
+    summary = report.summarize(table(rows), ["m"]).set_index("variant")
     a = summary.loc["a"]
     assert a["n"] == 3 and a["mean"] == pytest.approx(3.0) and a["median"] == pytest.approx(2.0)  # the failed run is left out
     assert a["std"] == pytest.approx(math.sqrt(7.0))  # ((1-3)^2 + (2-3)^2 + (6-3)^2) / (3-1)
@@ -84,7 +84,7 @@ def test_paired_comparison_on_a_hand_made_table():
     rows = [("base", s, "r", "completed", v) for s, v in enumerate(base)]
     rows += [("other", s, "r", "completed", v + d) for s, (v, d) in enumerate(zip(base, diff))]
     rows += [("other", 6, "r", "completed", 50.0), ("other", 0, "extra_robot", "completed", 1.0)]  # no partner: left out
-    comparisons = aggregate.compare(table(rows), "base", ["m"])
+    comparisons = report.compare(table(rows), "base", ["m"])
     assert len(comparisons) == 1
     c = comparisons.iloc[0]
     assert c["robot"] == "r" and c["n_pairs"] == 6
@@ -231,8 +231,8 @@ def test_ray_gives_the_same_metrics_as_the_process_pool(tmp_path):
     assert "local Ray" in result.text
     for run in read_index(tmp_path / "ray")["runs"]:
         assert run["status"] == "completed"
-        pool = aggregate.flatten(metrics(tmp_path / "pool" / run["folder"]))
-        ray = aggregate.flatten(metrics(tmp_path / "ray" / run["folder"]))
+        pool = report.flatten(metrics(tmp_path / "pool" / run["folder"]))
+        ray = report.flatten(metrics(tmp_path / "ray" / run["folder"]))
         timing = [k for k in pool if k.startswith("runtime.") or "wall" in k]
         assert {k: v for k, v in pool.items() if k not in timing} == {k: v for k, v in ray.items() if k not in timing}
         assert (tmp_path / "ray" / run["folder"] / "trajectories" / "rover.gt.tum").is_file()

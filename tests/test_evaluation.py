@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from sim.evaluation import gravity_aligned, in_start_frame, trajectory_metrics
+from sim.evaluation.trajectory import gravity_aligned, in_start_frame, trajectory_metrics
 
 
 def circle(n=200, radius=5.0, z=0.0):

@@ -20,7 +20,7 @@ GVEC = np.array([0.0, 0.0, -G])
 RATE = 200.0  # IMU, Hz
 DT = 1.0 / RATE
 
-# Xsens MTi-10 class (sim.sensors.XSENS_MTI_10): densities and bias walks
+# Xsens MTi-10 class (sim.world.sensors.XSENS_MTI_10): densities and bias walks
 PARAMS = FilterParams(
     gyro_noise_density=math.radians(0.03),
     accel_noise_density=80e-6 * 9.80665,

@@ -7,8 +7,8 @@ three rendezvous (issue 6), has a lower ATE than the filter alone for both."""
 import numpy as np
 import pytest
 
-from sim.evaluation import trajectory_metrics, truth_since
-from sim.runner import Run
+from sim.evaluation.trajectory import trajectory_metrics, truth_since
+from sim.run.runner import Run
 from sim.scenario import load_scenario
 
 QUIET = ["output.recording=false", "output.topdown_png=false", "robots.*.camera.depth_ground_truth_every=0"]

@@ -1,7 +1,7 @@
 import pytest
 import simpy
 
-from sim.lanes import ComputeModel, Device, Lane, Priority
+from sim.run.lanes import ComputeModel, Device, Lane, Priority
 from sim.scenario import ComputeConfig
 
 

@@ -1,12 +1,12 @@
-"""sim.map_evaluation against maps made from the true geometry itself."""
+"""sim.evaluation.map_quality against maps made from the true geometry itself."""
 
 import numpy as np
 import pytest
 
-from sim.map_evaluation import MapEvaluationError, map_quality
+from sim.evaluation.map_quality import MapEvaluationError, map_quality
 from sim.scenario import load_scenario
 from sim.seeding import RandomStreams
-from sim.terrain import generate_terrain
+from sim.world.terrain import generate_terrain
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from sim.marker_lut import LUT_DIR, TAG_ID, MarkerLutError, _TagScene, cell_errors, load_tables, lut_path
+from sim.tools.marker_lut import LUT_DIR, TAG_ID, MarkerLutError, _TagScene, cell_errors, load_tables, lut_path
 from slam.agent import Agent, AgentParams
 from slam.marker_uncertainty import (
     MAX_ROTATION_SIGMA_RAD,

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from dm_control import mjcf
 
-from sim.markers import MARKER_THICKNESS_M, MarkerSpec, add_marker, apriltag_image
+from sim.world.markers import MARKER_THICKNESS_M, MarkerSpec, add_marker, apriltag_image
 from slam.lie import rot_zyx, se3, se3_inv, skew, so3_exp, so3_log
 from slam.markers import (
     SIGMA_CONSTANT,
@@ -64,7 +64,7 @@ def background(rng: np.random.Generator, w: int = W, h: int = H) -> np.ndarray:
 
 
 def draw_tags(K: np.ndarray, tags: list[tuple[int, float, np.ndarray]], rng: np.random.Generator, w: int = W, h: int = H) -> np.ndarray:
-    """Grey image of AprilTags (id, size, T_cam_marker) warped from sim.markers.apriltag_image
+    """Grey image of AprilTags (id, size, T_cam_marker) warped from sim.world.markers.apriltag_image
     into a textured background: drawn at 4x, box-filtered down (an anti-aliased camera)."""
     img = background(rng, w, h)
     for tag_id, size_m, T in tags:
@@ -240,7 +240,7 @@ MJ_W, MJ_H = 320, 240
 MJ_HFOV_DEG = 50.0
 MJ_TAG = MarkerSpec(name="tag", tag_id=7, size_m=0.15, pos=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0))
 MJ_TAG_CENTRE = np.array([0.0, 0.0, 0.6])
-# sim.markers puts the box geom half its thickness behind the marker frame (the printed face)
+# sim.world.markers puts the box geom half its thickness behind the marker frame (the printed face)
 FACE_IN_GEOM = se3(np.eye(3), [0.0, 0.0, MARKER_THICKNESS_M / 2])
 
 

@@ -148,7 +148,7 @@ def test_pair_queue_orders_by_score_and_tries_each_pair_once():
 
 @pytest.fixture(scope="module")
 def rendered():
-    from sim.rocky_scene import RockyScene
+    from sim.tools.rocky_scene import RockyScene
 
     scene = RockyScene()
     try:

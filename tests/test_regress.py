@@ -6,7 +6,7 @@ import shutil
 import pytest
 from typer.testing import CliRunner
 
-from sim import regress
+from sim.batch import regress
 from sim.cli import app
 
 pytestmark = pytest.mark.regression

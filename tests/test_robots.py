@@ -25,13 +25,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim.markers import tag_dictionary
+from sim.world.markers import tag_dictionary
 from sim.robots import RobotError, make_robot
 from sim.robots.base import WheelState
 from sim.robots.route import RouteTracker
 from sim.scenario import RouteConfig, load_scenario
-from sim.terrain import generate_terrain
-from sim.world import build_world
+from sim.world.terrain import generate_terrain
+from sim.world.compose import build_world
 
 FLAT = {"preset": "moon", "size_m": 20, "roughness_m": 0.0, "craters": {"count": 0}, "rocks": {"count": 0},
         "texture": {"size_px": 512}}

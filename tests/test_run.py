@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from sim.runner import Run
+from sim.run.runner import Run
 from sim.scenario import load_scenario
 
 SMALL = {
@@ -109,7 +109,7 @@ def test_filter_nees_and_biases_against_truth(quickstart):
     ADIS16407's 50 mg turn-on accelerometer bias tilted the start (docs/estimation.md).
     The bounds hold those values with a margin for other seeds; ARDEA's is a regression
     guard for a known limitation, not a claim of consistency."""
-    from sim.evaluation import nees_report
+    from sim.evaluation.trajectory import nees_report
 
     bounds = {"lru1": (25.0, 10.0), "lru2": (10.0, 5.0), "ardea": (35.0, 35.0)}  # mean, median
     for robot, (mean_bound, median_bound) in bounds.items():
@@ -122,7 +122,7 @@ def test_filter_nees_and_biases_against_truth(quickstart):
 
 
 def test_imu_samples_integrate_to_the_physics_velocity(monkeypatch):
-    """The IMU averages the physics over each sample period (sim.sensors.InertialAverager):
+    """The IMU averages the physics over each sample period (sim.world.sensors.InertialAverager):
     strapdown integration of the noise-free samples with the true attitude reproduces
     the velocity change, also through the rover's wheel-ground contacts; and the run
     starts with every robot resting."""
@@ -163,12 +163,12 @@ def test_maps_against_the_true_terrain(quickstart, tmp_path):
     world by its true start pose, against the terrain's true surface. Measured on this
     12 s run: rovers median 1.5-2.5 cm, > 99 % of points within 0.1 m; ARDEA median 5.4
     cm, 89 % (its filter is off by 5-10 cm); completeness of the explored area 78-81 %."""
-    from sim import map_results
+    from sim.evaluation import maps
 
     bounds = {"lru1": (0.04, 0.95), "lru2": (0.04, 0.95), "ardea": (0.1, 0.8)}  # median, share within 0.1 m
     for robot, (median_bound, within_bound) in bounds.items():
         rt = quickstart.robots[robot]
-        section = map_results.map_section(tmp_path, robot, rt.log, rt.onboard, quickstart.terrain)
+        section = maps.map_section(tmp_path, robot, rt.log, rt.onboard, quickstart.terrain)
         accuracy, completeness = section["quality"]["accuracy"], section["quality"]["completeness"]
         assert accuracy["median_m"] < median_bound and accuracy["within_0_1_m"] > within_bound, (robot, accuracy)
         assert completeness["share"] > 0.6, (robot, completeness)
@@ -186,8 +186,8 @@ def test_submap_along_true_poses_matches_the_terrain(monkeypatch):
     gives a submap on the true surface, limited only by stereo: measured median 1.4 cm,
     p95 3.2 cm, 99.3 % within 0.1 m; occupied voxels 4.9 cm from the ground (median, 0.1 m
     voxels), the air halfway along the rays all free."""
-    from sim.map_evaluation import map_quality
-    from sim.onboard import calibration
+    from sim.evaluation.map_quality import map_quality
+    from sim.run.onboard import calibration
     from slam.lie import se3
     from slam.obstacles import classify_depth
     from slam.stereo import cut_far_points, depth_to_points
@@ -239,14 +239,14 @@ def test_a_failing_evaluation_costs_only_its_own_section(monkeypatch, tmp_path):
     import copy
     import json
 
-    from sim import map_results, results
+    from sim.evaluation import maps, results_folder
 
     def broken(*args):
         raise RuntimeError("deliberately broken")
 
     simulation = run(copy.deepcopy(SMALL))
-    monkeypatch.setattr(map_results, "map_section", broken)
-    results.write(simulation, tmp_path)
+    monkeypatch.setattr(maps, "map_section", broken)
+    results_folder.write(simulation, tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     for robot in ("rover", "copter"):
         assert metrics["robots"][robot]["map"]["status"] == f"map evaluation of {robot} failed: RuntimeError: deliberately broken"

@@ -1,4 +1,4 @@
-"""sim.sensors against what the simulator knows: IMU at rest, bias random walk
+"""sim.world.sensors against what the simulator knows: IMU at rest, bias random walk
 statistics, rendered depth against known planes, stereo geometry, wheel odometry."""
 
 from __future__ import annotations  # noqa: I001  (sim before mujoco: it sets MUJOCO_GL)
@@ -12,9 +12,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim.camera_rig import StereoRig
+from sim.world.camera_rig import StereoRig
 from sim.scenario import CameraConfig, WheelOdometryConfig
-from sim.sensors import (
+from sim.world.sensors import (
     IMU_PRESETS,
     SKY_FAR_FACTOR,
     ImuModel,
@@ -223,7 +223,7 @@ def test_image_formats(color):
 
 
 def test_renderers_share_a_context_and_close_independently():
-    from sim.sensors import _RenderTarget
+    from sim.world.sensors import _RenderTarget
 
     model, data = camera_scene("0 0 2", "0 0 0")
     a = StereoRenderer(model, RIG, CameraConfig())

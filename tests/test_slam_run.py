@@ -4,8 +4,8 @@ outage, every robot's graph against its peers' and against ground truth."""
 import numpy as np
 import pytest
 
-from sim.evaluation import pose_matrix
-from sim.runner import Run
+from sim.evaluation.trajectory import pose_matrix
+from sim.run.runner import Run
 from sim.scenario import load_scenario
 
 # Two LRUs 3 m apart, scanning right away with the head up: each sees the lander's tag

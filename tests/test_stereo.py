@@ -179,7 +179,7 @@ def test_far_point_cut_by_depth_error():
 
 
 def _median_depth_error(scene_builder, width: int, height: int) -> tuple[float, float]:
-    from sim.sensors import StereoRenderer
+    from sim.world.sensors import StereoRenderer
 
     model, data, rig, camera = scene_builder(width, height)
     renderer = StereoRenderer(model, rig, camera)
@@ -206,7 +206,7 @@ def test_sgbm_depth_on_rendered_heightfield(width, height):
 
 
 def test_sgbm_depth_on_procedural_terrain():
-    """The same check on sim.terrain's heightfield and regolith albedo."""
+    """The same check on sim.world.terrain's heightfield and regolith albedo."""
     from stereo_scenes import procedural_terrain_scene
 
     median, valid_share = _median_depth_error(procedural_terrain_scene, 320, 240)

@@ -13,7 +13,7 @@ from dm_control import mjcf
 from scipy import stats
 
 from sim.scenario import LanderConfig, TerrainConfig
-from sim.terrain import LANDER_PAD_RADIUS, TerrainError, add_terrain, generate_terrain
+from sim.world.terrain import LANDER_PAD_RADIUS, TerrainError, add_terrain, generate_terrain
 
 HFOV_DEG = 50.6  # LRU narrow stereo (thesis 7.1)
 W, H = 320, 240

@@ -1,9 +1,9 @@
 """Rendered stereo sequences with ground-truth camera poses for the visual-odometry tests.
 
-A robot drives (or flies) its route in a MuJoCo world built the way ``sim.runner``
+A robot drives (or flies) its route in a MuJoCo world built the way ``sim.run.runner``
 builds it (``load_scenario`` -> ``generate_terrain`` -> ``make_robot`` ->
 ``build_world``); every ``1 / rate_hz`` seconds one rig is rendered with
-``sim.sensors.StereoRenderer`` and the true pose of its left camera is recorded in the
+``sim.world.sensors.StereoRenderer`` and the true pose of its left camera is recorded in the
 OpenCV camera convention (x right, y down, z forward). MuJoCo cameras look along -z
 with y up, so ``R_cv = R_mj diag(1, -1, -1)``.
 
@@ -19,9 +19,9 @@ import numpy as np
 
 from sim.robots import make_robot
 from sim.scenario import load_scenario
-from sim.sensors import StereoRenderer
-from sim.terrain import generate_terrain
-from sim.world import build_world
+from sim.world.sensors import StereoRenderer
+from sim.world.terrain import generate_terrain
+from sim.world.compose import build_world
 from slam.stereo import StereoCalibration
 
 MJ_TO_CV = np.diag([1.0, -1.0, -1.0])

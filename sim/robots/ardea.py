@@ -38,7 +38,7 @@ from sim.robots.base import Robot, wrap_angle
 from sim.robots.hexacopter_control import HexacopterController, HexGains, SmoothedHeight
 
 if TYPE_CHECKING:
-    from sim.terrain import Terrain
+    from sim.world.terrain import Terrain
 
 ROTOR_RADIUS_M = 0.28
 ROTOR_ANGLES_DEG = (0, 60, 120, 180, 240, 300)

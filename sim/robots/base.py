@@ -32,13 +32,13 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
-from sim.camera_rig import StereoRig
-from sim.markers import MarkerSpec, add_marker
 from sim.robots.route import RouteTracker, WaypointRecord
 from sim.scenario import RobotConfig
+from sim.world.camera_rig import StereoRig
+from sim.world.markers import MarkerSpec, add_marker
 
 if TYPE_CHECKING:  # the terrain module is only needed for its type here
-    from sim.terrain import Terrain
+    from sim.world.terrain import Terrain
 
 __all__ = ["TIP_OVER_RAD", "Robot", "RobotError", "WaypointRecord", "WheelState"]
 

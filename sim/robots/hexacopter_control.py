@@ -149,7 +149,7 @@ class HexacopterController:
 class SmoothedHeight:
     """Box-filtered heightfield (window ``2 * half_window_m``), bilinear lookup at one point.
 
-    Row i of ``heights`` is at y = -size/2 + i * res, column j at x (``sim.terrain``'s
+    Row i of ``heights`` is at y = -size/2 + i * res, column j at x (``sim.world.terrain``'s
     layout); points off the grid are clamped onto its edge.
     """
 

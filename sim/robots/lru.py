@@ -43,7 +43,7 @@ from sim.robots.base import Robot, WheelState, wrap_angle
 from sim.robots.rover_control import DriveGains, drive_command, wheel_commands
 
 if TYPE_CHECKING:
-    from sim.terrain import Terrain
+    from sim.world.terrain import Terrain
 
 WHEEL_RADIUS_M = 0.15
 WHEEL_FRICTION = 0.8  # wheel-regolith traction; with priority=1 it overrides the ground geom's

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sim import results
-from sim.runner import Run
+from sim.evaluation import results_folder
+from sim.run.runner import Run
 from sim.scenario import load_scenario
 from slam.globalmap import GlobalMap
 
@@ -78,7 +78,7 @@ def bench(scenario_path: Path, out: Path, variants: list[str], duration: float |
         t0 = time.perf_counter()
         run = Run(scenario)
         run.execute()
-        metrics = results.write(run, out / name)
+        metrics = results_folder.write(run, out / name)
         runtime = metrics["runtime"]
         rows.append(
             {

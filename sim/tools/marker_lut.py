@@ -24,14 +24,14 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
-from sim.markers import MarkerSpec, add_marker
 from sim.robots import make_robot
 from sim.scenario import Scenario
+from sim.world.markers import MarkerSpec, add_marker
 from slam.lie import se3, se3_inv
 from slam.marker_uncertainty import DEFAULT_DP_PX, MarkerErrorTable, corner_perturbations, pose_error, postprocess, table_name
 from slam.markers import MarkerDetector
 
-LUT_DIR = Path(__file__).resolve().parent.parent / "assets" / "marker_lut"
+LUT_DIR = Path(__file__).resolve().parents[2] / "assets" / "marker_lut"
 TAG_ID = 3
 CAMERA_HEIGHT_M = 1.0
 MIN_DISTANCE_M = 0.3

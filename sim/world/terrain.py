@@ -36,14 +36,14 @@ import scipy.sparse
 from dm_control import mjcf
 from scipy.spatial import ConvexHull, cKDTree
 
-from sim.markers import (
+from sim.scenario import TerrainConfig
+from sim.world.markers import (
     MARKER_THICKNESS_M,
     QUIET_CELLS,
     TAG_CELLS,
     MarkerSpec,
     add_marker,
 )
-from sim.scenario import TerrainConfig
 
 HFIELD_BASE_M = 1.0  # depth of MuJoCo's hfield box below the lowest terrain point
 MAX_GRID_POINTS = 4097  # per side; finer grids do not fit MuJoCo (or memory) sensibly

@@ -1,5 +1,5 @@
-"""Submaps built from rendered stereo on sim.terrain's rocky terrain, for the matcher's
-tests and benchmark (``sim.match_bench``): a stereo head (LRU mast camera: b = 9 cm, 50.6 deg, 320x240,
+"""Submaps built from rendered stereo on sim.world.terrain's rocky terrain, for the matcher's
+tests and benchmark (``sim.tools.match_bench``): a stereo head (LRU mast camera: b = 9 cm, 50.6 deg, 320x240,
 1.2 m up, 25 deg down) is moved along straight paths; each pair is rendered, matched
 by SGBM, classified (5.1.1) and integrated into a submap (5.1.2) with the true camera
 poses, so the submaps carry only stereo and discretisation errors. The submap origin
@@ -15,10 +15,10 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
-from sim.camera_rig import StereoRig
 from sim.scenario import CameraConfig, TerrainConfig
-from sim.sensors import StereoRenderer
-from sim.terrain import add_terrain, generate_terrain
+from sim.world.camera_rig import StereoRig
+from sim.world.sensors import StereoRenderer
+from sim.world.terrain import add_terrain, generate_terrain
 from slam.obstacles import ObstacleParams, classify_depth
 from slam.registration import rot_z, transform
 from slam.stereo import StereoCalibration, StereoMatcher

@@ -23,12 +23,12 @@ import mujoco
 import numpy as np
 
 from comms import Delivery, Network
-from sim.camera_rig import StereoRig
-from sim.lanes import Lane, Priority
-from sim.marker_lut import load_tables
 from sim.robots.base import Robot
+from sim.run.lanes import Lane, Priority
 from sim.scenario import MappingConfig, Scenario, SlamConfig
-from sim.sensors import ImuSpec
+from sim.tools.marker_lut import load_tables
+from sim.world.camera_rig import StereoRig
+from sim.world.sensors import ImuSpec
 from slam.agent import Agent, AgentParams, Outgoing, TeamMarker
 from slam.filter import FilterParams
 from slam.graph import GraphParams, Topology

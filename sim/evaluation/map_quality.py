@@ -29,7 +29,7 @@ import numpy as np
 from scipy.ndimage import binary_dilation, maximum_filter, minimum_filter
 from scipy.spatial import ConvexHull, cKDTree
 
-from sim.terrain import LANDER_RADIUS, Terrain
+from sim.world.terrain import LANDER_RADIUS, Terrain
 
 
 @dataclass(frozen=True)

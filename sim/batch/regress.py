@@ -28,11 +28,11 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from sim.aggregate import flatten
-from sim.batch import RunSpec
-from sim.batch_exec import Outcome, run_local
+from sim.batch.execute import Outcome, run_local
+from sim.batch.report import flatten
+from sim.batch.spec import RunSpec
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 BASELINES = REPO / "results" / "baselines"
 CONFIG = "regress.yaml"
 FAILING = ("worse", "missing", "failed")

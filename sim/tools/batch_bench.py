@@ -18,10 +18,10 @@ from pathlib import Path
 
 import yaml
 
-from sim.batch import load_batch
-from sim.batch_exec import execute, plan
+from sim.batch.execute import execute, plan
+from sim.batch.spec import load_batch
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def bench_one(batch_file: Path, out: Path, workers: int, use_ray: bool) -> dict:

@@ -1,9 +1,9 @@
 """Submap matching benchmark (thesis 8.1, 8.1.2): time per stage and the share of
 correct matches, 4D against 6D, on submaps built from rendered stereo along crossing
-paths through a rocky area (:mod:`sim.rocky_scene`), each pair against its true
+paths through a rocky area (:mod:`sim.tools.rocky_scene`), each pair against its true
 transform.
 
-    python -m sim.match_bench [--paths N] [--out results/match_bench.json]
+    python -m sim.tools.match_bench [--paths N] [--out results/match_bench.json]
 
 Thesis (8.1): keypoints and features 0.39 s per map, feature matching 3.07 s per pair,
 Hough voting 0.02 s, ICP 2.38 s. Stage names here: ``keypoints`` (suitability and
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.rocky_scene import RockyScene
+from sim.tools.rocky_scene import RockyScene
 from slam.matcher import MatcherParams, match_pair, prepare
 from slam.registration import yaw_of
 

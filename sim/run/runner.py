@@ -5,7 +5,7 @@ every robot's controller set its actuators, steps MuJoCo, and then samples the s
 that are due on this tick (IMU, wheel odometry, stereo cameras, ground truth).
 Sampling from the clock, not from separate SimPy processes, fixes the order of
 events within a tick, which keeps runs deterministic. Sensor data becomes jobs in each
-robot's lane (:mod:`sim.lanes`); the first real job is stereo matching
+robot's lane (:mod:`sim.run.lanes`); the first real job is stereo matching
 (:mod:`slam.stereo`), whose depth is scored against rendered ground truth.
 """
 
@@ -24,17 +24,17 @@ import simpy
 from scipy.spatial.transform import Rotation
 
 from comms import Network, StereoStream, raw_stereo_load
-from sim.camera_rig import StereoRig
-from sim.lanes import ComputeModel, Device, Lane
-from sim.onboard import OnboardStack, body_camera_transform, calibration
-from sim.recording import Recorder
 from sim.robots import make_robot
 from sim.robots.base import Robot
+from sim.run.lanes import ComputeModel, Device, Lane
+from sim.run.onboard import OnboardStack, body_camera_transform, calibration
+from sim.run.recording import Recorder
 from sim.scenario import Scenario
 from sim.seeding import RandomStreams
-from sim.sensors import IMU_PRESETS, ImuModel, InertialAverager, StereoRenderer, WheelOdometryModel
-from sim.terrain import Terrain, generate_terrain
-from sim.world import World, build_world
+from sim.world.camera_rig import StereoRig
+from sim.world.compose import World, build_world
+from sim.world.sensors import IMU_PRESETS, ImuModel, InertialAverager, StereoRenderer, WheelOdometryModel
+from sim.world.terrain import Terrain, generate_terrain
 from slam.agent import TeamMarker
 from slam.stereo import StereoMatcher
 
@@ -164,7 +164,7 @@ ProgressCallback = Callable[[float, dict[str, str]], None]
 
 class Run:
     """One scenario run. ``execute()`` runs it; afterwards the attributes hold everything
-    :mod:`sim.results` writes. A failure mid-run leaves what was produced so far in place."""
+    :mod:`sim.evaluation.results_folder` writes. A failure mid-run leaves what was produced so far in place."""
 
     def __init__(self, scenario: Scenario, recorder: Recorder | None = None):
         self.scenario = scenario

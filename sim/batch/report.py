@@ -39,7 +39,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from sim.batch_exec import read_index
+from sim.batch.execute import read_index
 
 RUN_COLUMNS = ["run", "variant", "seed", "status", "error"]
 #: Keys of metrics.json that the index columns already hold.

@@ -1,7 +1,7 @@
 """Run one scenario into its results folder: what ``marsyard run`` and every batch run share.
 
 :func:`run_to_folder` builds the run, executes it and writes the folder of
-:mod:`sim.results`; a failure during the simulation still writes everything produced so
+:mod:`sim.evaluation.results_folder`; a failure during the simulation still writes everything produced so
 far (``metrics.json`` says ``status: failed``). A failure while setting the run up
 raises :class:`RunSetupError` after writing the traceback to ``error.txt``.
 """
@@ -13,9 +13,9 @@ from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any, Protocol
 
-from sim import results
-from sim.recording import Recorder
-from sim.runner import ProgressCallback, Run
+from sim.evaluation import results_folder
+from sim.run.recording import Recorder
+from sim.run.runner import ProgressCallback, Run
 from sim.scenario import Scenario
 
 
@@ -29,7 +29,7 @@ class RunSetupError(RuntimeError):
 
 class RunProgress(Protocol):
     """How a caller watches a run: a context around building it, one around simulating
-    it that yields the callback :meth:`sim.runner.Run.execute` reports to."""
+    it that yields the callback :meth:`sim.run.runner.Run.execute` reports to."""
 
     def building(self, scenario: Scenario) -> AbstractContextManager[None]: ...
 
@@ -38,7 +38,7 @@ class RunProgress(Protocol):
 
 def run_to_folder(scenario: Scenario, out: Path, progress: RunProgress | None = None) -> dict[str, Any]:
     """Run ``scenario`` and write its results folder ``out``; return the metrics dict."""
-    results.prepare(out, scenario)
+    results_folder.prepare(out, scenario)
     recorder = (
         Recorder(out / "recording.rrd", f"{scenario.name}-seed{scenario.seed}", scenario.output.recording_image_scale)
         if scenario.output.recording
@@ -63,7 +63,7 @@ def run_to_folder(scenario: Scenario, out: Path, progress: RunProgress | None = 
     try:
         if recorder is not None:
             recorder.log_link_series(simulation.network.timeseries())
-        return results.write(simulation, out, error, recorder)
+        return results_folder.write(simulation, out, error, recorder)
     finally:
         if recorder is not None:
             recorder.close()

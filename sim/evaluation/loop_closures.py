@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from sim import evaluation
-from sim.slam_results import detection_truth, rotation_deg, truth_at
+from sim.evaluation import trajectory
+from sim.evaluation.online_slam import detection_truth, rotation_deg, truth_at
 from slam.lie import so3_log
 from slam.registration import yaw_of
 
@@ -27,9 +27,9 @@ def origin_truth(onboard, gt_t: np.ndarray, gt_world: np.ndarray) -> dict[int, n
     """Frame index -> true world pose of that local frame's origin (gravity-aligned)."""
     if not onboard.log.t:
         return {}
-    out = {0: evaluation.gravity_aligned(truth_at(gt_t, gt_world, onboard.log.t[0]))}
+    out = {0: trajectory.gravity_aligned(truth_at(gt_t, gt_world, onboard.log.t[0]))}
     for s in onboard.estimator.switches:
-        out[s.frame_index] = evaluation.gravity_aligned(truth_at(gt_t, gt_world, s.t))
+        out[s.frame_index] = trajectory.gravity_aligned(truth_at(gt_t, gt_world, s.t))
     return out
 
 

@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import to_rgb
 
-from sim import evaluation
+from sim.evaluation import trajectory
 from slam.lie import so3_log
 
 FACTOR_COLOURS = {"prior": "k", "w": "tab:blue", "v": "tab:cyan", "u": "tab:olive", "d": "tab:red", "c": "tab:green", "o": "tab:purple"}
@@ -63,13 +63,13 @@ def slam_section(
     if len(slog.t) < 2 or not onboard.log.t:
         return {"status": "not started", "poses": len(slog.t)}
     log = logs[name]
-    gt_t, gt_start, T_world_start = evaluation.truth_since(log.gt_t, log.gt_pose, onboard.log.t[0])
+    gt_t, gt_start, T_world_start = trajectory.truth_since(log.gt_t, log.gt_pose, onboard.log.t[0])
     t_est, T_est = np.asarray(slog.t), np.stack(slog.pose)
-    evaluation.write_tum(out / "trajectories" / f"{name}.slam.tum", t_est, T_est)
+    trajectory.write_tum(out / "trajectories" / f"{name}.slam.tum", t_est, T_est)
     section: dict[str, Any] = {"status": "ok"}
     try:
-        section.update(evaluation.trajectory_metrics(t_est, T_est, gt_t, gt_start))
-    except evaluation.EvaluationError as exc:
+        section.update(trajectory.trajectory_metrics(t_est, T_est, gt_t, gt_start))
+    except trajectory.EvaluationError as exc:
         section = {"status": f"not evaluated: {exc}"}
     edges = [(kind, T_world_start @ _h(a), T_world_start @ _h(b)) for kind, a, b in agent.graph.edges()]
     if recorder is not None:
@@ -106,7 +106,7 @@ def _beliefs(slog, gt_world, T_world_map: np.ndarray) -> dict[str, Any]:
         for t, t_est, B in samples:
             true = np.linalg.solve(T_world_map, truth_at(t_peer, X_peer, t_est))
             err.append(np.linalg.norm(B[:3, 3] - true[:3, 3]))
-            yaw.append(abs(evaluation.wrap(evaluation.yaw_of(B[:3, :3]) - evaluation.yaw_of(true[:3, :3]))))
+            yaw.append(abs(trajectory.wrap(trajectory.yaw_of(B[:3, :3]) - trajectory.yaw_of(true[:3, :3]))))
             now = np.linalg.solve(T_world_map, truth_at(t_peer, X_peer, t))
             err_now.append(np.linalg.norm(B[:3, 3] - now[:3, 3]))
             age.append(t - t_est)

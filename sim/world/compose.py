@@ -21,7 +21,7 @@ from dm_control import mjcf
 
 from sim.robots.base import Robot
 from sim.scenario import Scenario
-from sim.terrain import Terrain, add_terrain
+from sim.world.terrain import Terrain, add_terrain
 
 GRAVITY = (0.0, 0.0, -9.81)
 

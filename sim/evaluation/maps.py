@@ -13,7 +13,7 @@ graph the map holds every submap the robot has, its peers' included, placed by i
 graph; without it, its own submaps placed by chaining the filter's frame switches.
 ``metrics.json`` gets ``robots.<name>.map``: submap count, sizes and partition reasons,
 map size, ``T_world_map`` (from the true start pose, for evaluation only) and the map
-quality of :mod:`sim.map_evaluation` in the world frame.
+quality of :mod:`sim.evaluation.map_quality` in the world frame.
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from sim import evaluation
-from sim.map_evaluation import map_quality
-from sim.terrain import Terrain
+from sim.evaluation import trajectory
+from sim.evaluation.map_quality import map_quality
+from sim.world.terrain import Terrain
 from slam.globalmap import GlobalMap
 
 
@@ -86,7 +86,7 @@ def map_section(out: Path, name: str, log, onboard, terrain: Terrain, recorder=N
     if len(points) == 0:
         section["quality"] = None
         return section
-    _, _, T_world_map = evaluation.truth_since(log.gt_t, log.gt_pose, est.t[0])
+    _, _, T_world_map = trajectory.truth_since(log.gt_t, log.gt_pose, est.t[0])
     section["T_world_map"] = T_world_map.tolist()
     world = points @ T_world_map[:3, :3].T + T_world_map[:3, 3]
     section["quality"] = map_quality(world, obstacle, terrain)

@@ -12,8 +12,8 @@
     comms_links.csv             per link: wire bytes, retransmissions, up fraction, queue occupancy
     routes.csv                  every waypoint of every robot with its outcome
     topdown.png                 terrain, rocks, lander, trajectories and waypoint outcomes
-    maps/, map_topdown.png      each robot's global map and its top-down view (see sim.map_results)
-    recording.rrd               rerun recording (see sim.recording)
+    maps/, map_topdown.png      each robot's global map and its top-down view (see sim.evaluation.maps)
+    recording.rrd               rerun recording (see sim.run.recording)
     error.txt                   only when the run failed: the traceback
 
 A failed run still writes everything it produced up to the failure.
@@ -34,8 +34,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import LightSource
 
-from sim import evaluation, loop_closure_results, map_results, slam_results
-from sim.runner import Run
+from sim.evaluation import loop_closures, maps, online_slam, trajectory
+from sim.run.runner import Run
 from sim.scenario import Scenario, dump_scenario
 
 STEREO_SUMMARY_BINS = ("2-4m", "4-6m")  # the 2-6 m band the acceptance test uses
@@ -55,10 +55,10 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
     robots_metrics: dict[str, Any] = {}
     depth_rows, lane_rows, route_rows = [], [], []
     gt_world = {
-        n: (np.asarray(r.log.gt_t), np.stack([evaluation.pose_matrix(p) for p in r.log.gt_pose]))
+        n: (np.asarray(r.log.gt_t), np.stack([trajectory.pose_matrix(p) for p in r.log.gt_pose]))
         for n, r in run.robots.items() if r.log.gt_pose
     }
-    landmark_world = slam_results.lander_tag_pose(run.world.model, run.world.data)
+    landmark_world = online_slam.lander_tag_pose(run.world.model, run.world.data)
     for name, runtime in run.robots.items():
         log, robot = runtime.log, runtime.robot
         _write_tum(out / "trajectories" / f"{name}.gt.tum", log.gt_t, log.gt_pose)
@@ -78,12 +78,12 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
         filter_section = map_metrics = slam_metrics = None
         if runtime.onboard is not None:
             slam_metrics = _guarded(
-                out, f"SLAM evaluation of {name}", slam_results.slam_section,
+                out, f"SLAM evaluation of {name}", online_slam.slam_section,
                 out, name, {n: r.log for n, r in run.robots.items()}, runtime.onboard, gt_world, landmark_world, recorder,
             )
             filter_section = _guarded(out, f"filter evaluation of {name}", _filter_section, out, name, log, runtime.onboard, recorder)
             map_metrics = _guarded(
-                out, f"map evaluation of {name}", map_results.map_section,
+                out, f"map evaluation of {name}", maps.map_section,
                 out, name, log, runtime.onboard, run.terrain, recorder, list(run.robots).index(name),
             )
         robots_metrics[name] = {
@@ -108,7 +108,7 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
     _write_csv(out / "comms_links.csv", run.network.link_table())
     comms = run.network.to_metrics()
     comms["raw_equivalent_Bps"] = run.raw_equivalent_load()
-    loop_closures = _guarded(out, "loop closure evaluation", loop_closure_results.loop_closure_section, run, gt_world, landmark_world)
+    closures = _guarded(out, "loop closure evaluation", loop_closures.loop_closure_section, run, gt_world, landmark_world)
     metrics = {
         "scenario": run.scenario.name,
         "seed": run.scenario.seed,
@@ -117,16 +117,16 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
         "runtime": runtime_metrics(run),
         "robots": robots_metrics,
         "comms": comms,
-        "loop_closures": loop_closures,
+        "loop_closures": closures,
     }
     if run.scenario.output.topdown_png:
         plot_topdown(run, out / "topdown.png")
         if any(m.get("filter") for m in robots_metrics.values()):
             plot_filter_errors(robots_metrics, out / "filter_error.png")
-        slam_results.plot_slam(robots_metrics, {n: T[:, :3, 3] for n, (_, T) in gt_world.items()}, out / "slam.png")
-        maps = {name: m["map"] for name, m in robots_metrics.items() if m.get("map")}
+        online_slam.plot_slam(robots_metrics, {n: T[:, :3, 3] for n, (_, T) in gt_world.items()}, out / "slam.png")
+        robot_maps = {name: m["map"] for name, m in robots_metrics.items() if m.get("map")}
         paths = {name: np.stack(r.log.gt_pose)[:, :3] for name, r in run.robots.items() if r.log.gt_pose}
-        map_results.plot_maps(maps, paths, run.terrain, out / "map_topdown.png")
+        maps.plot_maps(robot_maps, paths, run.terrain, out / "map_topdown.png")
     for m in robots_metrics.values():  # series went into the plot; keep metrics.json scalar-sized
         if m.get("map"):
             m["map"].pop("_plot", None)
@@ -156,18 +156,18 @@ def _filter_section(out: Path, name: str, log, onboard, recorder) -> dict[str, A
     est = onboard.log
     if len(est.t) < 2:
         return {"status": "not started", "poses": len(est.t)}
-    gt_t, gt_start, T_world_start = evaluation.truth_since(log.gt_t, log.gt_pose, est.t[0])  # the filter's first frame
+    gt_t, gt_start, T_world_start = trajectory.truth_since(log.gt_t, log.gt_pose, est.t[0])  # the filter's first frame
     T_est = np.stack(est.pose_first_frame)
     if recorder is not None:
         recorder.log_filter(name, np.asarray(est.t), T_world_start[None] @ T_est, np.stack(est.position_std))
-    evaluation.write_tum(out / "trajectories" / f"{name}.gt_start.tum", gt_t, gt_start)
-    evaluation.write_tum(out / "trajectories" / f"{name}.filter.tum", np.asarray(est.t), T_est)
+    trajectory.write_tum(out / "trajectories" / f"{name}.gt_start.tum", gt_t, gt_start)
+    trajectory.write_tum(out / "trajectories" / f"{name}.filter.tum", np.asarray(est.t), T_est)
     section: dict[str, Any] = {"status": "ok"}
     try:
-        section.update(evaluation.trajectory_metrics(np.asarray(est.t), T_est, gt_t, gt_start))
-    except evaluation.EvaluationError as exc:
+        section.update(trajectory.trajectory_metrics(np.asarray(est.t), T_est, gt_t, gt_start))
+    except trajectory.EvaluationError as exc:
         section = {"status": f"not evaluated: {exc}"}
-    section["nees_roll_pitch_velocity"] = evaluation.nees_report(
+    section["nees_roll_pitch_velocity"] = trajectory.nees_report(
         np.stack(est.observable), np.stack(est.observable_true), np.stack(est.observable_cov)
     )
     bias, bias_true = np.stack(est.bias), np.stack(est.bias_true)

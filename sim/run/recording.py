@@ -15,8 +15,8 @@ import cv2
 import numpy as np
 import rerun as rr
 
-from sim.camera_rig import StereoRig
-from sim.terrain import Terrain
+from sim.world.camera_rig import StereoRig
+from sim.world.terrain import Terrain
 
 TIMELINE = "sim_time"
 TERRAIN_MESH_CELLS = 200  # the terrain mesh is downsampled to at most this many cells a side

@@ -10,7 +10,7 @@
   (819.2 Hz sampling, Bartlett window filter) do. A single instantaneous physics sample
   per IMU period aliases the wheel-ground contact impulses into velocity errors of
   several cm/s per point turn, which the filter cannot model as white noise.
-- :class:`StereoRenderer` renders a rectified pinhole pair (:class:`~sim.camera_rig.StereoRig`)
+- :class:`StereoRenderer` renders a rectified pinhole pair (:class:`~sim.world.camera_rig.StereoRig`)
   offscreen, grey or RGB, plus the left camera's ground-truth z-depth, fast on CPU
   (llvmpipe): no shadows, no reflections, no MSAA, and depth read from the same pass as
   the left image (no extra depth-only render).
@@ -30,8 +30,8 @@ import cv2
 import mujoco
 import numpy as np
 
-from sim.camera_rig import StereoRig
 from sim.scenario import CameraConfig, WheelOdometryConfig
+from sim.world.camera_rig import StereoRig
 
 __all__ = [
     "IMU_PRESETS",

@@ -3,7 +3,7 @@
 The batch folder::
 
     index.json                  the batch and one entry per run: status, error, wall time, folder
-    runs/<variant>/seed<n>/     an ordinary run folder (see :mod:`sim.results`), plus
+    runs/<variant>/seed<n>/     an ordinary run folder (see :mod:`sim.evaluation.results_folder`), plus
                                 worker.log: what the run's process printed
 
 ``index.json`` is rewritten after every run, so an interrupted batch loses nothing;
@@ -42,7 +42,7 @@ from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Any
 
-from sim.batch import Batch, RunSpec, scenario_dict
+from sim.batch.spec import Batch, RunSpec, scenario_dict
 
 FINAL = ("completed", "failed", "crashed", "timeout")
 RETRYABLE = ("failed", "crashed", "timeout")
@@ -60,7 +60,7 @@ class Outcome:
 
 def run_spec(spec: RunSpec, folder: Path) -> Outcome:
     """Run one spec into ``folder``: load its scenario, run it, say how it went."""
-    from sim.run_folder import RunSetupError, run_to_folder
+    from sim.run.run_folder import RunSetupError, run_to_folder
     from sim.scenario import load_scenario
 
     t0 = time.perf_counter()
@@ -190,7 +190,7 @@ def run_local(specs: list[RunSpec], out: Path, workers: int, on_start: StartHook
     """At most ``workers`` runs at a time, each in a fresh process forked from a server
     that has imported the simulator; a run past its timeout is killed."""
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(["sim.batch_exec", "sim.run_folder"])
+    ctx.set_forkserver_preload(["sim.batch.execute", "sim.run.run_folder"])
     queue = list(reversed(specs))
     running: dict[Any, tuple[Any, Any, RunSpec, float]] = {}  # process sentinel -> (process, connection, spec, start)
     try:
