@@ -182,6 +182,67 @@ def _covariance(c, n: int, name: str) -> np.ndarray:
     return 0.5 * (a + a.T)
 
 
+def _resting_specific_force(accel_at_rest, gravity: float) -> np.ndarray:
+    """The mean specific force ``f = -R^T g + b_a`` of a resting accelerometer, checked to be
+    near ``gravity`` in magnitude."""
+    f = _vector(accel_at_rest, 3, "accel_at_rest")
+    if not 0.5 * gravity < np.linalg.norm(f) < 1.5 * gravity:
+        raise FilterException(f"accel_at_rest {f} is not a resting specific force (|f| should be near {gravity})")
+    return f
+
+
+def _roll_pitch_at_rest(f: np.ndarray | None) -> tuple[float, float]:
+    """ZYX roll and pitch of the body from the resting specific force ``f`` (the gravity
+    direction in the body: roll and pitch are observable, thesis 4.1.2); 0, 0 without one."""
+    if f is None:
+        return 0.0, 0.0
+    return math.atan2(f[1], f[2]), math.atan2(-f[0], math.hypot(f[1], f[2]))
+
+
+def _gravity_direction_at_rest(f: np.ndarray | None, rest_duration_s: float) -> np.ndarray:
+    """Unit vector along the resting specific force ``f`` (body frame), the direction in
+    which ``|f| - g`` observes the accelerometer bias over ``rest_duration_s``."""
+    if f is None or not rest_duration_s > 0.0:
+        raise FilterException(f"rest_duration_s needs accel_at_rest and must be > 0, got {rest_duration_s!r}")
+    return f / np.linalg.norm(f)
+
+
+def _tilt_from_accel_bias(f: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """3x3 map from the accelerometer bias error to the tilt error ``dtheta`` (left
+    perturbation, eq. 4.2) of the roll and pitch of :func:`_roll_pitch_at_rest`: the true
+    roll and pitch are those of ``f - b_a``, so ``dtheta = -M J_f b_a`` with ``J_f`` the
+    derivative of the two ``atan2`` and ``M`` the ZYX Euler-rate Jacobian."""
+    fx, fy, fz = f
+    h2, n2 = fy * fy + fz * fz, f @ f
+    h = math.sqrt(h2)
+    J_f = np.array([[0.0, fz / h2, -fy / h2], [-h / n2, fx * fy / (h * n2), fx * fz / (h * n2)]])
+    return -M[:, :2] @ J_f
+
+
+@dataclass(frozen=True, slots=True)
+class _Snapshot:
+    """The whole filter at a clone's image trigger (mean, IMU interpolation memory, clones
+    and covariance), rolled back to by the delay compensation of thesis 4.1.1 (module
+    docstring). Core arrays are shared with the filter (it replaces them, never modifies
+    them in place); clone arrays and ``P`` are copies."""
+
+    t: float
+    p: np.ndarray
+    v: np.ndarray
+    R: np.ndarray
+    ba: np.ndarray
+    bw: np.ndarray
+    f_prev: np.ndarray | None
+    w_prev: np.ndarray | None
+    dt_last: float
+    steps: int
+    clone_ids: tuple[int, ...]
+    clone_t: tuple[float, ...]
+    cR: np.ndarray  # (n, 3, 3) clone attitudes, in clone_ids order
+    cp: np.ndarray  # (n, 3) clone positions
+    P: np.ndarray  # (15 + 6 n) square covariance
+
+
 class LocalReferenceFilter:
     """Error-state EKF of thesis 4.1 (eq. 4.1-4.3) on one robot; see the module docstring.
 
@@ -214,35 +275,54 @@ class LocalReferenceFilter:
         error)."""
         self.params = params
         self._g = np.array([0.0, 0.0, -params.gravity])
-        roll = pitch = 0.0
-        if accel_at_rest is not None:
-            f = _vector(accel_at_rest, 3, "accel_at_rest")
-            if not 0.5 * params.gravity < np.linalg.norm(f) < 1.5 * params.gravity:
-                raise FilterException(f"accel_at_rest {f} is not a resting specific force (|f| should be near {params.gravity})")
-            roll = math.atan2(f[1], f[2])
-            pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
+        f = None if accel_at_rest is None else _resting_specific_force(accel_at_rest, params.gravity)
+        roll, pitch = _roll_pitch_at_rest(f)
+        u = None if rest_duration_s is None else _gravity_direction_at_rest(f, rest_duration_s)
+        self._init_direct_state(t0, roll, pitch, f, u, gyro_at_rest)
+        self._init_clones()
+        self._init_error_covariance(roll, pitch, f, u, rest_duration_s)
+        self._init_process_noise()
+        # delay compensation (thesis 4.1.1): the input log since the oldest clone snapshot
+        # in the horizon, events [kind, t, *inputs]; a clone's event is
+        # ["clone", t, clone_id, _Snapshot], also found by clone id in _clone_event
+        self._log: list[list] = []
+        self._clone_event: dict[int, list] = {}
+
+    def _init_direct_state(self, t0: float, roll: float, pitch: float, f: np.ndarray | None, u: np.ndarray | None, gyro_at_rest) -> None:
+        """Direct state ``x = (p, v, q, b_a, b_w)`` of eq. 4.1 at rest in the first local
+        frame: position and velocity 0, attitude from ``roll`` and ``pitch`` with yaw 0,
+        accelerometer bias ``(|f| - g) u`` along the gravity direction ``u`` where it is
+        observed (else 0), gyro bias the resting gyro mean (else 0); then the strapdown's
+        memory (previous IMU sample, last interval, step count) and the frame count."""
         self._t = float(t0)
         self._p = np.zeros(3)
         self._v = np.zeros(3)
         self._R = rot_zyx(roll, pitch, 0.0)
-        self._ba = np.zeros(3)
-        if rest_duration_s is not None:
-            if accel_at_rest is None or not rest_duration_s > 0.0:
-                raise FilterException(f"rest_duration_s needs accel_at_rest and must be > 0, got {rest_duration_s!r}")
-            u = f / np.linalg.norm(f)
-            self._ba = (np.linalg.norm(f) - params.gravity) * u
+        self._ba = np.zeros(3) if u is None else (np.linalg.norm(f) - self.params.gravity) * u
         self._bw = np.zeros(3) if gyro_at_rest is None else _vector(gyro_at_rest, 3, "gyro_at_rest")
         self._f_prev: np.ndarray | None = None
         self._w_prev: np.ndarray | None = None
         self._dt_last = 0.0
         self._steps = 0
         self._frame_index = 0
-        # clones: ids and capture times; attitudes and positions in fixed buffers
+
+    def _init_clones(self) -> None:
+        """No clones yet (state augmentation, eq. 4.3): ids and capture times; attitudes and
+        positions in fixed buffers of ``max_clones`` rows, the first ``len(_clone_ids)`` in use."""
         self._clone_ids: list[int] = []
         self._clone_t: list[float] = []
-        self._cR = np.zeros((params.max_clones, 3, 3))  # first len(_clone_ids) rows in use
-        self._cp = np.zeros((params.max_clones, 3))
+        self._cR = np.zeros((self.params.max_clones, 3, 3))
+        self._cp = np.zeros((self.params.max_clones, 3))
 
+    def _init_error_covariance(self, roll: float, pitch: float, f: np.ndarray | None, u: np.ndarray | None, rest_duration_s: float | None) -> None:
+        """Prior covariance of the error state ``delta`` of eq. 4.2, in a buffer sized for
+        ``max_clones`` clones: the ``initial_*_std`` of :class:`FilterParams` (roll, pitch and
+        yaw mapped to ``dtheta`` through the ZYX Euler-rate Jacobian ``M``); along the
+        gravity direction ``u`` (``rest_duration_s`` given) the accelerometer bias has the
+        variance of the resting mean instead; with a resting specific force ``f`` the tilt
+        error is the bias across gravity (:func:`_tilt_from_accel_bias`), fully correlated
+        with the bias error (their sum is what gravity observes)."""
+        params = self.params
         dim = CORE + CLONE * params.max_clones
         self._Pbuf = np.zeros((dim, dim))
         P0 = self._Pbuf[:CORE, :CORE]
@@ -252,27 +332,23 @@ class LocalReferenceFilter:
         rp2, y2 = params.initial_roll_pitch_std**2, params.initial_yaw_std**2
         P0[_TH, _TH] = M @ np.diag([rp2, rp2, y2]) @ M.T
         P0[_BA, _BA] = np.eye(3) * params.initial_accel_bias_std**2
-        if rest_duration_s is not None:
+        if u is not None:
             along = params.accel_noise_density**2 / rest_duration_s + params.accel_bias_random_walk**2 * rest_duration_s
             P0[_BA, _BA] += (along - params.initial_accel_bias_std**2) * np.outer(u, u)
         P0[_BW, _BW] = np.eye(3) * params.initial_gyro_bias_std**2
-        if accel_at_rest is not None:
-            # the resting specific force holds the accelerometer bias: the true roll and
-            # pitch are those of f - b_a, so the tilt error is -J_f b_a (J_f: derivative of
-            # the two atan2 above), as a left perturbation through M; it is fully
-            # correlated with the bias error (their sum is what gravity observes)
-            fx, fy, fz = f
-            h2, n2 = fy * fy + fz * fz, f @ f
-            h = math.sqrt(h2)
-            J_f = np.array([[0.0, fz / h2, -fy / h2], [-h / n2, fx * fy / (h * n2), fx * fz / (h * n2)]])
-            T = -M[:, :2] @ J_f
+        if f is not None:
+            T = _tilt_from_accel_bias(f, M)
             Pb = P0[_BA, _BA]
             P0[_TH, _TH] += T @ Pb @ T.T
             P0[_TH, _BA] = T @ Pb
             P0[_BA, _TH] = (T @ Pb).T
 
-        # discrete process noise Qd = dt Q1 + dt^2 Q2 + dt^3 Q3 (isotropic densities, so
-        # independent of the attitude)
+    def _init_process_noise(self) -> None:
+        """Constant parts of the covariance prediction (thesis 4.1.1: the continuous-time
+        error model of Schmid et al. 2014a, module docstring): the discrete process noise
+        ``Qd = dt Q1 + dt^2 Q2 + dt^3 Q3`` (isotropic densities, so independent of the
+        attitude), and the transition matrix ``Phi`` with its work buffer and column scales."""
+        params = self.params
         sa2, sg2 = params.accel_noise_density**2, params.gyro_noise_density**2
         I3 = np.eye(3)
         self._Q1 = np.zeros((CORE, CORE))
@@ -290,10 +366,6 @@ class LocalReferenceFilter:
         self._phi_v_scale = np.repeat([-1.0, -1.0, 0.5], 3)
         self._q_key = math.nan
         self._Qd = np.zeros((CORE, CORE))
-
-        # delay compensation: input log since the oldest clone snapshot in the horizon
-        self._log: list[list] = []
-        self._clone_event: dict[int, list] = {}
 
     # ------------------------------------------------------------------ read-outs
 
@@ -536,7 +608,7 @@ class LocalReferenceFilter:
         anchor_t = max(self._clone_t[ks[0]], self._clone_t[ks[1]])
         event = ["relpose", anchor_t, kf_clone_id, cur_clone_id, T, C]
         anchor = self._clone_event.get(anchor_id)
-        replayable = anchor is not None and anchor[1] == anchor_t and {kf_clone_id, cur_clone_id} <= set(anchor[3][10])
+        replayable = anchor is not None and anchor[1] == anchor_t and {kf_clone_id, cur_clone_id} <= set(anchor[3].clone_ids)
         if anchor_t == self._t or not replayable:
             nis = self._relpose(kf_clone_id, cur_clone_id, T, C)  # in time, or stochastic cloning only
             if self._log:
@@ -739,35 +811,38 @@ class LocalReferenceFilter:
 
     # ------------------------------------------------------------------ delay compensation
 
-    def _snapshot(self) -> tuple:
+    def _snapshot(self) -> _Snapshot:
         d = self._dim
-        return (
-            self._t,
-            self._p,
-            self._v,
-            self._R,
-            self._ba,
-            self._bw,
-            self._f_prev,
-            self._w_prev,
-            self._dt_last,
-            self._steps,
-            list(self._clone_ids),
-            list(self._clone_t),
-            self._cR[: len(self._clone_ids)].copy(),
-            self._cp[: len(self._clone_ids)].copy(),
-            self._Pbuf[:d, :d].copy(),
+        n = len(self._clone_ids)
+        return _Snapshot(
+            t=self._t,
+            p=self._p,
+            v=self._v,
+            R=self._R,
+            ba=self._ba,
+            bw=self._bw,
+            f_prev=self._f_prev,
+            w_prev=self._w_prev,
+            dt_last=self._dt_last,
+            steps=self._steps,
+            clone_ids=tuple(self._clone_ids),
+            clone_t=tuple(self._clone_t),
+            cR=self._cR[:n].copy(),
+            cp=self._cp[:n].copy(),
+            P=self._Pbuf[:d, :d].copy(),
         )
 
-    def _restore(self, s: tuple) -> None:
+    def _restore(self, s: _Snapshot) -> None:
         # core arrays are replaced, never modified in place, so sharing them is safe; clones and P are copied
-        (self._t, self._p, self._v, self._R, self._ba, self._bw, self._f_prev, self._w_prev, self._dt_last, self._steps) = s[:10]
-        self._clone_ids, self._clone_t = list(s[10]), list(s[11])
+        self._t, self._p, self._v, self._R = s.t, s.p, s.v, s.R
+        self._ba, self._bw = s.ba, s.bw
+        self._f_prev, self._w_prev, self._dt_last, self._steps = s.f_prev, s.w_prev, s.dt_last, s.steps
+        self._clone_ids, self._clone_t = list(s.clone_ids), list(s.clone_t)
         n = len(self._clone_ids)
-        self._cR[:n] = s[12]
-        self._cp[:n] = s[13]
-        P = s[14]
-        self._Pbuf[: P.shape[0], : P.shape[0]] = P
+        self._cR[:n] = s.cR
+        self._cp[:n] = s.cp
+        d = s.P.shape[0]
+        self._Pbuf[:d, :d] = s.P
 
     def _event_index(self, event: list) -> int:
         for i in range(len(self._log) - 1, -1, -1):

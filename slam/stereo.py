@@ -23,7 +23,7 @@ thesis 5.1.1) on each of the four image coordinates of a stereo correspondence
 With this model, eq. 5.2a-c follow exactly (y from the mean of both rows gives the
 ``b^2 / 2`` term of 5.2b). Eq. 5.4 is the same propagation applied to the distance of two
 independently triangulated points. The printed thesis has two slips in eq. 5.4b: ``t``
-for ``b`` (as the brief notes) and ``+ (q_z - p_z) q_z`` where the derivation (and the
+for ``b`` and ``+ (q_z - p_z) q_z`` where the derivation (and the
 p <-> q symmetry with eq. 5.4e) gives ``- (q_z - p_z) q_z``. This module uses the derived
 form; ``tests/test_stereo.py`` checks it against a Monte-Carlo propagation.
 """
@@ -85,10 +85,6 @@ class StereoCalibration:
     def fb(self) -> float:
         """Focal length times baseline (px m): depth = fb / disparity."""
         return self.focal_px * self.baseline_m
-
-    def disparity_for_depth(self, depth_m: float | np.ndarray) -> float | np.ndarray:
-        """``d = f b / z`` in pixels."""
-        return self.fb / np.asarray(depth_m, dtype=float)
 
 
 # --------------------------------------------------------------------------- matching

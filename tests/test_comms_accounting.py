@@ -14,7 +14,8 @@ NODES = ["lru1", "lru2", "ardea", "lander"]
 
 
 def busy_network(seed: int, until: float = 60.0, keep_log: bool = False):
-    """Four nodes, bursty loss, random and scheduled outages, a relay, all kinds."""
+    """Four nodes, bursty loss, random and scheduled outages, a relay, all kinds. Returns
+    the network, the deliveries per node and every message handed to it (in send order)."""
     env, net = make_net(
         nodes=NODES,
         seed=seed,
@@ -32,6 +33,7 @@ def busy_network(seed: int, until: float = 60.0, keep_log: bool = False):
         kinds={"submap": {"max_queued": 3}},
     )
     received = {n: [] for n in NODES}
+    sent = []
     for n in NODES:
         net.on_receive(n, received[n].append)
     rng = np.random.default_rng(seed)
@@ -42,32 +44,38 @@ def busy_network(seed: int, until: float = 60.0, keep_log: bool = False):
         while True:
             yield env.timeout(0.1)
             k += 1
-            net.broadcast(name, "pose", rng.bytes(120), to=robots)
+            sent.extend(net.broadcast(name, "pose", rng.bytes(120), to=robots))
             if k % 20 == 0:
                 other = robots[(robots.index(name) + 1) % 3]
-                net.send(name, other, "loop_closure", rng.bytes(400))
+                sent.append(net.send(name, other, "loop_closure", rng.bytes(400)))
             if k % 50 == 0:
-                net.broadcast(name, "submap", rng.bytes(int(rng.integers(50_000, 200_000))), to=robots)
+                sent.extend(net.broadcast(name, "submap", rng.bytes(int(rng.integers(50_000, 200_000))), to=robots))
 
     for name in robots:
         env.process(robot(name))
     env.run(until=until)
-    return net, received
+    return net, received, sent
 
 
 def test_every_message_has_one_fate_and_none_arrives_twice():
-    net, received = busy_network(seed=11)
+    net, received, sent = busy_network(seed=11)
     deliveries = [d for got in received.values() for d in got]
     ids = [d.message.id for d in deliveries]
     assert len(ids) == len(set(ids))
+    # the totals against what was handed in and what arrived, message by message
+    fates = {m.id: net.accounting.fate(m.id) for m in sent}
+    assert len(fates) == len(sent)
+    assert {i for i, fate in fates.items() if fate == "delivered"} == set(ids)
     totals = net.to_metrics()["totals"]
-    assert totals["delivered_msgs"] == len(deliveries)
-    assert totals["offered_msgs"] == totals["delivered_msgs"] + totals["dropped_msgs"] + totals["pending_msgs"]
-    assert totals["pending_msgs"] >= 0
+    assert totals["offered_msgs"] == len(sent) and totals["offered_bytes"] == sum(m.size for m in sent)
+    assert totals["delivered_msgs"] == len(deliveries) and totals["delivered_bytes"] == sum(d.message.size for d in deliveries)
     reasons = totals["dropped_by_reason"]
-    assert reasons["loss"]["msgs"] > 0 and reasons["queue_full"]["msgs"] > 0  # poses lost, submaps overflowed
+    for reason, dropped in reasons.items():  # each undelivered message counted once, under the reason of its fate
+        lost = [m for m in sent if fates[m.id] == reason]
+        assert (dropped["msgs"], dropped["bytes"]) == (len(lost), sum(m.size for m in lost)), reason
+    assert totals["pending_msgs"] == sum(fate is None for fate in fates.values())
+    assert reasons["loss"]["msgs"] > 0 and reasons["queue_full"]["msgs"] > 0  # poses lost, and pushed out of their bounded queue
     for d in deliveries:
-        assert net.accounting.fate(d.message.id) == "delivered"
         assert d.received_at >= d.message.sent_at + 0.05 * (len(d.path) - 1)
     by_kind = net.to_metrics()["by_kind"]
     assert by_kind["loop_closure"]["dropped_msgs"] == 0  # reliable
@@ -82,7 +90,7 @@ def test_benchmark_runs():
 
 
 def test_reports_are_plain_json_data():
-    net, _ = busy_network(seed=12, until=20)
+    net, _, _ = busy_network(seed=12, until=20)
     metrics = net.to_metrics()
     json.dumps(metrics)
     json.dumps(net.to_table())
@@ -98,9 +106,9 @@ def test_reports_are_plain_json_data():
 
 
 def test_same_seed_same_event_log_other_seed_other_log():
-    a, _ = busy_network(seed=21, until=30, keep_log=True)
-    b, _ = busy_network(seed=21, until=30, keep_log=True)
-    c, _ = busy_network(seed=22, until=30)
+    a, _, _ = busy_network(seed=21, until=30, keep_log=True)
+    b, _, _ = busy_network(seed=21, until=30, keep_log=True)
+    c, _, _ = busy_network(seed=22, until=30)
     assert len(a.accounting.log) > 1000
     assert a.accounting.log == b.accounting.log
     assert a.accounting.digest() == b.accounting.digest()

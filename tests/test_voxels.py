@@ -350,20 +350,23 @@ def test_bad_resolution(resolution):
 
 
 def test_bad_shapes():
+    """Bad input raises the module's VoxelException (a ValueError, so callers may catch
+    either) and leaves the grid untouched, even with valid rays next to the bad point."""
     grid = VoxelGrid(R)
-    with pytest.raises(ValueError, match=r"points_world must have shape \(n, 3\), got \(4, 2\)"):
+    with pytest.raises(VoxelException, match=r"points_world must have shape \(n, 3\), got \(4, 2\)"):
         grid.integrate(np.zeros((4, 2)), np.zeros(3))
-    with pytest.raises(ValueError, match="origin_world must be 3 finite numbers"):
+    with pytest.raises(VoxelException, match="origin_world must be 3 finite numbers"):
         grid.integrate(np.zeros((4, 3)), np.zeros(2))
-    with pytest.raises(ValueError, match="max_range must be positive"):
+    with pytest.raises(VoxelException, match="max_range must be positive"):
         grid.integrate(np.ones((4, 3)), np.zeros(3), max_range=0.0)
-    with pytest.raises(ValueError, match=r"points must have shape \(n, 3\)"):
+    with pytest.raises(VoxelException, match=r"points must have shape \(n, 3\)"):
         grid.state(np.zeros(3))
-    with pytest.raises(ValueError, match="outside the grid"):
-        grid.integrate(np.array([[1e6, 0, 0]]), np.zeros(3))
-    with pytest.raises(ValueError, match="resolutions differ"):
+    with pytest.raises(VoxelException, match="outside the grid"):
+        grid.integrate(np.array([[1.0, 0, 0], [1e6, 0, 0]]), np.zeros(3))
+    with pytest.raises(ValueError, match="resolutions differ") as raised:
         grid.merge(VoxelGrid(0.2))
-    assert issubclass(VoxelException, ValueError)
+    assert raised.type is VoxelException
+    assert len(grid) == 0
 
 
 @pytest.mark.parametrize(
