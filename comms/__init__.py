@@ -1,4 +1,4 @@
-"""The SimPy network model between the robots (design notes §1, issue 3).
+"""The SimPy network model between the robots (thesis 3.3, 7.2).
 
 Imports only the standard library, numpy, simpy and pydantic: never ``sim`` or
 ``slam``. Modules: ``config`` (the scenario's ``comms:`` section and presets),

@@ -12,7 +12,11 @@ come from the on-board measurements of thesis 8.4.
 
 from __future__ import annotations
 
+import inspect
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -27,6 +31,15 @@ from pydantic import (
 )
 
 from comms import CommsConfig, CommsError
+from sim.robots import PRESETS
+from slam.agent import AgentParams
+from slam.graph import GraphParams
+from slam.health import HealthParams
+from slam.local_estimator import LocalEstimator
+from slam.matcher import MatcherParams
+from slam.obstacles import ObstacleParams
+from slam.rest import RestParams
+from slam.submap import SubmapParams
 
 NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
 
@@ -52,6 +65,73 @@ def _ordered_range(value: tuple[float, float], what: str) -> tuple[float, float]
     if value[0] > value[1]:
         raise ValueError(f"{what} must be [min, max] with min <= max")
     return value
+
+
+# --------------------------------------------------------------------------- keys that set slam parameters
+
+
+@dataclass(frozen=True)
+class SlamParam:
+    """The parameter ``name`` of ``target`` (a slam parameter dataclass or function) that
+    a scenario key sets; ``degrees``: the key takes degrees, the parameter radians."""
+
+    target: Callable[..., Any]
+    name: str
+    degrees: bool = False
+
+    @property
+    def slam_default(self) -> Any:
+        """The parameter's default in slam (``inspect.Parameter.empty`` if it has none)."""
+        return inspect.signature(self.target).parameters[self.name].default
+
+    def key_default(self) -> Any:
+        """The slam default in the scenario key's units (enums by value)."""
+        value = self.slam_default
+        if value is inspect.Parameter.empty:
+            return value
+        if isinstance(value, Enum):
+            return value.value
+        if not self.degrees:
+            return value
+        deg = round(math.degrees(value), 9)
+        if math.radians(deg) != value:
+            raise TypeError(f"{self}: the default {value!r} rad is no round number of degrees")
+        return deg
+
+    def to_slam(self, value: Any) -> Any:
+        """A scenario value as the slam parameter takes it."""
+        if self.degrees:
+            return math.radians(value)
+        default = self.slam_default
+        return type(default)(value) if isinstance(default, Enum) else value
+
+
+def slam_field(*params: SlamParam, default: Any = inspect.Parameter.empty, **kwargs: Any) -> Any:
+    """A pydantic field for a key that sets the slam ``params``; its default is theirs
+    (they must agree), so slam's parameter classes are the one source of defaults.
+    ``default`` only for parameters without one in slam. :func:`slam_kwargs` reads the
+    link back."""
+    defaults = {p.key_default() for p in params}
+    if len(defaults) != 1:
+        raise TypeError(f"slam parameters {params} have different defaults: {defaults}")
+    (own,) = defaults
+    if (own is inspect.Parameter.empty) == (default is inspect.Parameter.empty):
+        raise TypeError(f"{params}: give a default exactly when slam has none")
+    info = Field(default if own is inspect.Parameter.empty else own, **kwargs)
+    info.metadata.extend(params)
+    return info
+
+
+def slam_kwargs(target: Callable[..., Any], *sections: BaseModel) -> dict[str, Any]:
+    """Keyword arguments for ``target`` from the scenario ``sections`` whose keys set its
+    parameters (declared with :func:`slam_field`)."""
+    out = {}
+    for section in sections:
+        for key, info in type(section).model_fields.items():
+            for param in info.metadata:
+                if isinstance(param, SlamParam) and param.target is target:
+                    out[param.name] = param.to_slam(getattr(section, key))
+    return out
 
 
 # --------------------------------------------------------------------------- terrain
@@ -130,6 +210,11 @@ class TerrainConfig(StrictModel):
 # --------------------------------------------------------------------------- robots
 
 
+def _per_preset(attribute: str) -> str:
+    """A robot class attribute for every preset, e.g. ``lru 4, lru_wide 4, ardea 2``."""
+    return ", ".join(f"{name} {getattr(robot, attribute)}" for name, robot in PRESETS.items())
+
+
 class CameraConfig(StrictModel):
     """Rendered rectified pinhole stereo. ``hfov_deg`` overrides the preset's."""
 
@@ -147,7 +232,7 @@ class CameraConfig(StrictModel):
 
 class ImuConfig(StrictModel):
     preset: Literal["xsens_mti10", "adis16407"] | None = Field(
-        None, description="default: xsens_mti10 on rovers, adis16407 on ardea (thesis 7.1)"
+        None, description=f"default per preset: {_per_preset('default_imu_preset')} (thesis 7.1)"
     )
     rate_hz: float = Field(200.0, gt=0, le=1000)
 
@@ -208,7 +293,7 @@ class ComputerConfig(StrictModel):
     """The robot's on-board computer (thesis 7.1: rovers quad-core i7, ARDEA dual-core,
     both with an FPGA for dense stereo)."""
 
-    cores: int | None = Field(None, ge=1, le=64, description="default: 4 on rovers, 2 on ardea")
+    cores: int | None = Field(None, ge=1, le=64, description=f"default per preset: {_per_preset('default_cores')}")
     fpga: bool = Field(True, description="stereo matching runs on its own FPGA device")
 
 
@@ -226,23 +311,12 @@ class RobotConfig(StrictModel):
     computer: ComputerConfig = ComputerConfig()
 
     @property
-    def is_aerial(self) -> bool:
-        return self.preset == "ardea"
-
-    @property
     def marker_count(self) -> int:
-        return 2 if self.is_aerial else 3
+        return PRESETS[self.preset].marker_count
 
     @model_validator(mode="after")
     def _check_preset_fields(self) -> RobotConfig:
-        if not self.is_aerial:
-            bad = [i for i, w in enumerate(self.route.waypoints) if w.altitude_m is not None]
-            if bad:
-                raise ValueError(f"altitude_m is for the hexacopter only; rover waypoints {bad} have one")
-            if self.route.land:
-                raise ValueError("route.land is for the hexacopter only")
-        if self.tag_ids is not None and len(self.tag_ids) != self.marker_count:
-            raise ValueError(f"preset {self.preset} carries {self.marker_count} markers, got {len(self.tag_ids)} tag_ids")
+        PRESETS[self.preset].check_config(self)
         return self
 
 
@@ -293,46 +367,100 @@ class MappingConfig(StrictModel):
     """Obstacle classification and submaps (thesis ch. 5); a new submap switches the filter's frame."""
 
     enabled: bool = True
-    submap_position_std_m: PositiveFloat = Field(
-        0.15, description="new submap when the filter's position std exceeds this (thesis 5.1.3: 0.1-0.2 m)"
+    submap_position_std_m: PositiveFloat = slam_field(
+        SlamParam(SubmapParams, "max_position_std_m"),
+        description="new submap when the filter's position std exceeds this (thesis 5.1.3: 0.1-0.2 m)",
     )
-    submap_distance_m: PositiveFloat = Field(5.0, description="new submap after this distance in the current one (thesis: 3.5 or 7 m)")
-    point_resolution_m: PositiveFloat = Field(0.05, description="submap point cloud voxel filter (thesis 5.1.2)")
-    voxel_resolution_m: PositiveFloat = Field(0.1, description="submap occupancy voxels (thesis 5.1.2)")
-    max_depth_error_m: PositiveFloat = Field(0.15, description="points whose depth error (eq. 5.2c) exceeds this are dropped")
-    step_height_m: PositiveFloat = Field(0.15, description="h_max: highest step the robot drives over (thesis 5.1.1)")
-    max_slope_deg: float = Field(20.0, gt=0, lt=90, description="steepest traversable slope, for negative edges (eq. 5.1)")
-    window_cells: int = Field(5, ge=3, le=6, description="h_diff window of the 2.5D height map, 0.05 m cells (thesis 5.1.1)")
+    submap_distance_m: PositiveFloat = slam_field(
+        SlamParam(SubmapParams, "max_distance_m"), description="new submap after this distance in the current one (thesis: 3.5 or 7 m)"
+    )
+    point_resolution_m: PositiveFloat = slam_field(
+        SlamParam(SubmapParams, "point_resolution_m"), description="submap point cloud voxel filter (thesis 5.1.2)"
+    )
+    voxel_resolution_m: PositiveFloat = slam_field(
+        SlamParam(SubmapParams, "voxel_resolution_m"), description="submap occupancy voxels (thesis 5.1.2)"
+    )
+    max_depth_error_m: PositiveFloat = slam_field(
+        SlamParam(SubmapParams, "max_depth_error_m"),
+        SlamParam(ObstacleParams, "max_error_m"),
+        description="points whose depth error (eq. 5.2c) exceeds this are dropped",
+    )
+    step_height_m: PositiveFloat = slam_field(
+        SlamParam(ObstacleParams, "step_height_m"), description="h_max: highest step the robot drives over (thesis 5.1.1)"
+    )
+    max_slope_deg: float = slam_field(
+        SlamParam(ObstacleParams, "max_slope_rad", degrees=True),
+        gt=0,
+        lt=90,
+        description="steepest traversable slope, for negative edges (eq. 5.1)",
+    )
+    window_cells: int = slam_field(
+        SlamParam(ObstacleParams, "window_cells"),
+        ge=3,
+        le=6,
+        description="h_diff window of the 2.5D height map, 0.05 m cells (thesis 5.1.1)",
+    )
 
 
 class GraphConfig(StrictModel):
     """The multi-robot pose graph and the exchange between robots (thesis 4.2, 3.3)."""
 
     enabled: bool = Field(True, description="false: filter only, no graph optimisation, no messages, no detections")
-    topology: Literal["local_reference", "sequential"] = Field(
-        "local_reference", description="thesis 4.2.2: filter estimates on submap origins, or sequential odometry (eq. 4.8-4.9)"
+    topology: Literal["local_reference", "sequential"] = slam_field(
+        SlamParam(GraphParams, "topology"),
+        description="thesis 4.2.2: filter estimates on submap origins, or sequential odometry (eq. 4.8-4.9)",
     )
-    cauchy_c: PositiveFloat = Field(3.5, description="Cauchy kernel constant (eq. 4.10) on detections, matches and landmarks, Mahalanobis units")
-    pose_period_s: PositiveFloat = Field(1.0, description="each robot broadcasts its pose estimate this often")
-    covariance_period_s: PositiveFloat = Field(10.0, description="marginal covariances of the latest submap origins this often")
-    pose_buffer_s: PositiveFloat = Field(900.0, description="how far back a robot can answer a detection of itself")
+    robust: Literal["cauchy", "gnc", "none"] = slam_field(
+        SlamParam(GraphParams, "robust"),
+        description="detections, matches and landmark observations: Cauchy kernel (thesis 4.2.3, eq. 4.10), "
+        "Graduated Non-Convexity outlier rejection (Yang et al. 2020) or plain Gaussian",
+    )
+    cauchy_c: PositiveFloat = slam_field(
+        SlamParam(GraphParams, "cauchy_c"),
+        description="robust: cauchy: the kernel's constant (eq. 4.10), Mahalanobis units",
+    )
+    gnc_inlier_probability: float = slam_field(
+        SlamParam(GraphParams, "gnc_inlier_probability"),
+        gt=0,
+        lt=1,
+        description="robust: gnc: an inlier's squared Mahalanobis distance is below this chi-square quantile (6 dof)",
+    )
+    pose_period_s: PositiveFloat = slam_field(
+        SlamParam(AgentParams, "pose_period_s"), description="each robot broadcasts its pose estimate this often"
+    )
+    covariance_period_s: PositiveFloat = slam_field(
+        SlamParam(AgentParams, "covariance_period_s"), description="marginal covariances of the latest submap origins this often"
+    )
+    pose_buffer_s: PositiveFloat = slam_field(
+        SlamParam(AgentParams, "buffer_horizon_s"), description="how far back a robot can answer a detection of itself"
+    )
 
 
 class DetectionConfig(StrictModel):
     """AprilTag robot detections and landmark observations (thesis 6.2.1)."""
 
     enabled: bool = True
-    uncertainty: Literal["constant", "quadratic", "lut", "online", "lut_online"] = Field(
-        "quadratic",
+    uncertainty: Literal["constant", "quadratic", "lut", "online", "lut_online"] = slam_field(
+        SlamParam(AgentParams, "uncertainty"),
         description="eq. 8.1, eq. 8.2, or thesis 6.2.3: lookup table (assets/marker_lut, `marsyard marker-lut`), corner perturbation, both",
     )
-    min_interval_s: NonNegFloat = Field(2.0, description="at most one detection of each target per interval")
-    max_distance_m: PositiveFloat = Field(6.0, description="markers farther than this are not used")
-    max_tilt_deg: float = Field(
-        30.0, gt=0, le=90, description="of PnP's two solutions the one with the target closest to upright, if tilted at most this"
+    min_interval_s: NonNegFloat = slam_field(
+        SlamParam(AgentParams, "detection_interval_s"), description="at most one detection of each target per interval"
     )
-    max_ambiguity: float = Field(
-        0.7, gt=0, le=1.0, description="PnP's best over second-best reprojection error at most this (near 1 the planar pose is ambiguous)"
+    max_distance_m: PositiveFloat = slam_field(
+        SlamParam(AgentParams, "max_detection_distance_m"), description="markers farther than this are not used"
+    )
+    max_tilt_deg: float = slam_field(
+        SlamParam(AgentParams, "max_target_tilt_rad", degrees=True),
+        gt=0,
+        le=90,
+        description="of PnP's two solutions the one with the target closest to upright, if tilted at most this",
+    )
+    max_ambiguity: float = slam_field(
+        SlamParam(AgentParams, "max_ambiguity"),
+        gt=0,
+        le=1.0,
+        description="PnP's best over second-best reprojection error at most this (near 1 the planar pose is ambiguous)",
     )
 
 
@@ -340,31 +468,69 @@ class MatchingConfig(StrictModel):
     """Submap matching (thesis 6.1): intra- and inter-robot loop closures ``c``."""
 
     enabled: bool = Field(True, description="match submaps in the background (needs slam.mapping and slam.graph)")
-    mode: Literal["4d", "6d"] = Field("4d", description="thesis 6.1.2: gravity-aligned 4D alignment and ICP, or 6D (8.1.2's baseline)")
-    min_overlap_m2: PositiveFloat = Field(2.0, description="eq. 6.2: xy overlap of the obstacle bounding boxes, widened by 2 relative sigmas")
+    mode: Literal["4d", "6d"] = slam_field(
+        SlamParam(MatcherParams, "mode"), description="thesis 6.1.2: gravity-aligned 4D alignment and ICP, or 6D (8.1.2's baseline)"
+    )
+    min_overlap_m2: PositiveFloat = slam_field(
+        SlamParam(MatcherParams, "min_overlap_m2"),
+        description="eq. 6.2: xy overlap of the obstacle bounding boxes, widened by 2 relative sigmas",
+    )
     stereo_error_depth_m: PositiveFloat = Field(
         2.0, description="p_z of eq. 6.3: pairs more certain than the stereo error at this depth are skipped (thesis: 4 m for its LRU)"
     )
-    sigma_scale: PositiveFloat = Field(
-        1.0, description="the graph's relative sigmas are multiplied by this in eq. 6.1-6.4 and the 2-sigma checks (>1: an overconfident filter)"
+    sigma_scale: PositiveFloat = slam_field(
+        SlamParam(MatcherParams, "sigma_scale"),
+        description="the graph's relative sigmas are multiplied by this in eq. 6.1-6.4 and the 2-sigma checks (>1: an overconfident filter)",
     )
-    sigma_bound: PositiveFloat = Field(2.0, description="hypotheses and results must lie within this many relative sigmas of the graph")
-    descriptor_radius_m: PositiveFloat = Field(0.4, description="FPFH radius (and of the known-space check around keypoints)")
-    max_descriptor_distance: float = Field(0.25, gt=0, le=1, description="L2 between unit FPFH descriptors, scaled to [0, 1]")
-    max_icp_rmse_m: PositiveFloat = Field(0.1, description="a refined match with a larger point-to-point RMSE is rejected")
+    sigma_bound: PositiveFloat = slam_field(
+        SlamParam(MatcherParams, "sigma_bound"),
+        description="hypotheses and results must lie within this many relative sigmas of the graph",
+    )
+    descriptor_radius_m: PositiveFloat = slam_field(
+        SlamParam(MatcherParams, "descriptor_radius_m"), description="FPFH radius (and of the known-space check around keypoints)"
+    )
+    max_descriptor_distance: float = slam_field(
+        SlamParam(MatcherParams, "max_descriptor_distance"), gt=0, le=1, description="L2 between unit FPFH descriptors, scaled to [0, 1]"
+    )
+    max_icp_rmse_m: PositiveFloat = slam_field(
+        SlamParam(MatcherParams, "max_icp_rmse_m"), description="a refined match with a larger point-to-point RMSE is rejected"
+    )
+
+
+class HealthConfig(StrictModel):
+    """When a robot's estimator calls itself degraded or lost (slam/health.py)."""
+
+    vo_timeout_s: PositiveFloat = slam_field(
+        SlamParam(HealthParams, "vo_timeout_s"), description="degraded after this long without an applied VO delta while not resting"
+    )
+    lost_after_s: PositiveFloat = slam_field(SlamParam(HealthParams, "lost_after_s"), description="lost after this long degraded")
+    max_position_std_m: PositiveFloat | None = slam_field(
+        SlamParam(HealthParams, "max_position_std_m"), description="lost when the position std in the local frame exceeds this (null: no bound)"
+    )
+    max_velocity_std_mps: PositiveFloat | None = slam_field(
+        SlamParam(HealthParams, "max_velocity_std_mps"), description="lost when the velocity std exceeds this (null: no bound)"
+    )
 
 
 class SlamConfig(StrictModel):
     """The on-board estimation stack of every robot (thesis ch. 4)."""
 
     enabled: bool = True
-    vo_rig: str | None = Field(None, description="stereo rig used for VO (default: 'head' on rovers, 'down' on ardea)")
-    wheel_odometry: bool = Field(True, description="rovers fuse wheel odometry as body-velocity updates")
-    wheel_speed_std_mps: PositiveFloat = Field(
-        0.03, description="velocity noise the filter assumes for wheel odometry: sensor noise plus unmodelled slip"
+    vo_rig: str | None = Field(None, description=f"stereo rig used for VO (default per preset: {_per_preset('default_vo_rig')})")
+    wheel_odometry: bool = Field(True, description="robots with wheel encoders (the rovers) fuse wheel odometry as body-velocity updates")
+    wheel_speed_std_mps: PositiveFloat = slam_field(
+        SlamParam(LocalEstimator.on_wheel_odometry, "speed_std"),
+        default=0.03,
+        description="velocity noise the filter assumes for wheel odometry: sensor noise plus unmodelled slip",
     )
-    wheel_yaw_rate_std_rps: PositiveFloat = Field(0.03, description="yaw-rate noise the filter assumes for wheel odometry")
-    wheel_vz_std_mps: PositiveFloat = Field(0.05, description="std of the rover's v_z = 0 pseudo-measurement")
+    wheel_yaw_rate_std_rps: PositiveFloat = slam_field(
+        SlamParam(LocalEstimator.on_wheel_odometry, "yaw_rate_std"),
+        default=0.03,
+        description="yaw-rate noise the filter assumes for wheel odometry",
+    )
+    wheel_vz_std_mps: PositiveFloat = slam_field(
+        SlamParam(LocalEstimator.on_wheel_odometry, "vz_std"), description="std of the rover's v_z = 0 pseudo-measurement"
+    )
     frame_switch_distance_m: PositiveFloat = Field(
         5.0, description="without mapping only: frame switch after this distance driven in the current frame"
     )
@@ -376,6 +542,63 @@ class SlamConfig(StrictModel):
         0.5,
         description="roll and pitch initialised from the mean accelerometer reading over this long before the route starts",
     )
+    zero_velocity: bool = slam_field(
+        SlamParam(RestParams, "zero_velocity"),
+        description="zero-velocity updates while the robot rests (slam/rest.py: IMU rest test, vetoed by motion commands, wheels and VO)",
+    )
+    health: HealthConfig = HealthConfig()
+
+
+# --------------------------------------------------------------------------- faults
+
+
+class FaultEntry(StrictModel):
+    """What every injected failure has: the robots it hits and when (sim/run/faults.py injects them)."""
+
+    robots: list[str] | None = Field(None, min_length=1, description="the robots it hits (default: all)")
+    start_s: NonNegFloat = Field(0.0, description="active from this simulated time on")
+    end_s: PositiveFloat | None = Field(None, description="active before this simulated time (default: to the end)")
+
+    @model_validator(mode="after")
+    def _window(self) -> FaultEntry:
+        if self.end_s is not None and self.end_s <= self.start_s:
+            raise ValueError(f"end_s ({self.end_s:g}) must be after start_s ({self.start_s:g})")
+        return self
+
+    def hits(self, robot: str, t: float) -> bool:
+        """Whether the fault applies to ``robot`` at time ``t``."""
+        return (self.robots is None or robot in self.robots) and self.start_s <= t and (self.end_s is None or t < self.end_s)
+
+
+class MeasurementFault(FaultEntry):
+    """A share of one kind of loop-closure measurement replaced by wrong ones (thesis 4.2.3: overconfident,
+    erroneous loop closures)."""
+
+    rate: float = Field(..., ge=0, le=1, description="share of the robot's measurements of this kind replaced, 0..1")
+    translation_m: NonNegFloat = Field(1.0, description="the wrong transform's translation error")
+    rotation_deg: float = Field(20.0, ge=0, le=180, description="the wrong transform's rotation error")
+
+
+class WrongDetectionFault(MeasurementFault):
+    """A robot detection or landmark observation (thesis 6.2.1) replaced by a wrong one, as a misread tag or a
+    mirrored PnP solution gives: the measured transform turned by ``rotation_deg`` about a random axis and moved
+    by ``translation_m`` in a random direction, before the robot uses or sends it; its covariance stays."""
+
+    type: Literal["wrong_detection"]
+
+
+class WrongMatchFault(MeasurementFault):
+    """Perceptual aliasing in submap matching (thesis 6.1): a match attempt, whatever the matcher found, yields a
+    loop closure at the graph's prediction of the pair turned by ``rotation_deg`` about the vertical and moved
+    by ``translation_m`` horizontally (what a 4D match can be wrong by), with a confident covariance, as a wrong
+    match that passed RANSAC and ICP would have."""
+
+    type: Literal["wrong_match"]
+    sigma_m: PositiveFloat = Field(0.03, description="the wrong closure's translation sigma (an accepted match's ICP RMSE)")
+    sigma_deg: PositiveFloat = Field(1.0, description="the wrong closure's rotation sigma")
+
+
+FaultConfig = Annotated[WrongDetectionFault | WrongMatchFault, Field(discriminator="type")]
 
 
 class Scenario(StrictModel):
@@ -390,6 +613,7 @@ class Scenario(StrictModel):
     output: OutputConfig = OutputConfig()
     comms: CommsConfig = CommsConfig()
     slam: SlamConfig = SlamConfig()
+    faults: list[FaultConfig] = Field([], description="injected failures, each a typed entry (`type: wrong_detection | wrong_match`)")
 
     def network_nodes(self) -> list[str]:
         """Nodes of the network: the robots, the lander if there is one, and what the
@@ -437,6 +661,15 @@ class Scenario(StrictModel):
                 "physics.control_rate_hz must divide 1/physics.timestep_s "
                 f"(got {self.physics.control_rate_hz:g} Hz at {self.physics.timestep_s:g} s)"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _check_faults(self) -> Scenario:
+        names = [r.name for r in self.robots]
+        for i, fault in enumerate(self.faults):
+            unknown = [n for n in fault.robots or [] if n not in names]
+            if unknown:
+                raise ValueError(f"faults.{i} ({fault.type}): robots: no robot named {', '.join(map(repr, unknown))}; robots: {names}")
         return self
 
     def assigned_tag_ids(self) -> dict[str, list[int]]:
@@ -522,25 +755,32 @@ def _list_index(node: list, part: str, where: str) -> int:
 def _allowed_keys(model: type[BaseModel], loc: tuple) -> list[str] | None:
     """Walk the schema along ``loc`` (minus its last element) and list the allowed keys there."""
     current: Any = model
+    annotation: Any = None
     for part in loc[:-1]:
         if isinstance(part, int):
             continue
         if not (isinstance(current, type) and issubclass(current, BaseModel)):
             return None
         field = current.model_fields.get(part)
-        if field is None:
-            return None
-        current = _inner_model(field.annotation)
+        if field is None:  # the tag of a discriminated union's member, e.g. faults.0.wrong_match
+            current = _inner_model(annotation, tag=part)
+            continue
+        annotation = field.annotation
+        current = _inner_model(annotation)
     if isinstance(current, type) and issubclass(current, BaseModel):
         return sorted(current.model_fields)
     return None
 
 
-def _inner_model(annotation: Any) -> Any:
+def _inner_model(annotation: Any, tag: str | None = None) -> Any:
+    """The (first) model in ``annotation``; with ``tag``, the union member whose ``type`` is that literal."""
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
+        kind = annotation.model_fields.get("type")
+        if tag is None or (kind is not None and tag in getattr(kind.annotation, "__args__", ())):
+            return annotation
+        return None
     for arg in getattr(annotation, "__args__", ()) or ():
-        found = _inner_model(arg)
+        found = _inner_model(arg, tag)
         if found is not None:
             return found
     return None
@@ -559,6 +799,8 @@ def _format_loc(loc: tuple, raw: dict[str, Any]) -> str:
         else:
             if part in ("function-after", "function-before") or "[" in str(part):
                 continue
+            if isinstance(node, dict) and part not in node and node.get("type") == part:
+                continue  # pydantic names the member of a discriminated union (faults) by its tag
             out.append(str(part))
             node = node.get(part) if isinstance(node, dict) else None
     return ".".join(out) or "(top level)"
@@ -573,6 +815,8 @@ def _describe(error: dict, raw: dict[str, Any]) -> str:
         return f"{path}: unknown key{hint}"
     if error["type"] == "missing":
         return f"{path}: required key is missing"
+    if error["type"] == "union_tag_not_found":
+        return f"{path}: required key `{error['ctx']['discriminator'].strip(chr(39))}` is missing"
     value = error.get("input")
     msg = error["msg"].removeprefix("Value error, ")
     if isinstance(value, dict):  # a check across several keys: the message names them
@@ -612,8 +856,3 @@ def dump_scenario(scenario: Scenario) -> str:
     for robot in data["robots"]:
         robot["tag_ids"] = ids[robot["name"]]
     return yaml.safe_dump(data, sort_keys=False)
-
-
-def hfov_to_vfov_deg(hfov_deg: float, width: int, height: int) -> float:
-    """Vertical field of view of a pinhole camera with square pixels."""
-    return math.degrees(2 * math.atan(math.tan(math.radians(hfov_deg) / 2) * height / width))

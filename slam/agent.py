@@ -17,6 +17,11 @@ that received the same messages hold the same factors (delayed or reordered mess
 change nothing: the local-reference topology never replaces a factor). A robot cut off
 keeps estimating with what it has and catches up when messages arrive; a message seen
 before (same origin and sequence number) is ignored.
+
+A caller that tests robustness (thesis 4.2.3: erroneous loop closures) hands the agent a
+:class:`MeasurementFaults`: it may replace a detection's transform before the robot uses and
+sends it, or turn a match attempt into a wrong loop closure; the robot's records keep the
+wrong values, marked (``DetectionRecord.injected``, match reason ``injected``).
 """
 
 from __future__ import annotations
@@ -25,7 +30,9 @@ import itertools
 import math
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
@@ -35,7 +42,7 @@ from slam.local_estimator import FrameSwitch, LocalEstimator
 from slam.local_mapper import LocalMapper
 from slam.marker_uncertainty import DEFAULT_DP_PX, MAX_ROTATION_SIGMA_RAD, MarkerErrorTable, detection_sigmas
 from slam.markers import MarkerDetection, MarkerDetector, UncertaintyModel, detection_covariance, relative_pose
-from slam.matcher import Candidate, MatcherParams
+from slam.matcher import Candidate, MatcherParams, SubmapKey
 from slam.messages import (
     DetectionMessage,
     Envelope,
@@ -99,6 +106,20 @@ def upright_solution(
     return best if best_tilt <= max_tilt_rad else None
 
 
+class MeasurementFaults(Protocol):
+    """Wrong measurements injected by the agent's caller (a simulator's fault model; thesis 4.2.3 on erroneous
+    loop closures). Each method returns None to leave the measurement as it is."""
+
+    def detection(self, t: float, target: str, T_detector_target: np.ndarray) -> np.ndarray | None:
+        """A wrong ``T_detector_target`` for this robot's detection of ``target`` (a robot, or
+        ``landmark:<id>``) captured at ``t``, used and sent instead of the measured one (its covariance stays)."""
+
+    def match(self, t: float, a: SubmapKey, b: SubmapKey, predicted_T_a_b: np.ndarray, matched: bool) -> tuple[np.ndarray, np.ndarray] | None:
+        """A wrong loop closure ``(T_a_b, 6x6 covariance)`` for this robot's match attempt of submaps ``a`` and
+        ``b`` finished at ``t``, whatever the matcher found (``matched``); ``predicted_T_a_b``: the graph's
+        estimate of the pair from the last pairing."""
+
+
 @dataclass(frozen=True)
 class AgentParams:
     graph: GraphParams = field(default_factory=GraphParams)
@@ -137,6 +158,7 @@ class DetectionRecord:
     cov: np.ndarray
     distance_m: float
     ambiguity: float
+    injected: bool = False  # replaced by a wrong one (:class:`MeasurementFaults`)
 
 
 @dataclass
@@ -149,6 +171,7 @@ class AgentStats:
     detections_rejected: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     unanswerable: int = 0  # detections of this robot at a time its buffer no longer (or not yet) holds
     duplicate_closures: int = 0  # loop closures of a pair already closed (matchers racing on two robots)
+    marginal_failures: int = 0  # marginal covariances gtsam could not compute (the previous one kept)
     graph_updates: list[UpdateStats] = field(default_factory=list)
     covariance_s: list[float] = field(default_factory=list)
 
@@ -164,6 +187,7 @@ class Agent:
         estimator: LocalEstimator,
         mapper: LocalMapper | None = None,
         params: AgentParams = AgentParams(),
+        faults: MeasurementFaults | None = None,
     ):
         if name not in team:
             raise ValueError(f"agent {name!r} is not in its team {team}")
@@ -173,6 +197,7 @@ class Agent:
         self.estimator = estimator
         self.mapper = mapper
         self.params = params
+        self.faults = faults
         self.graph = MultiRobotGraph(name, params.graph)
         self.buffer = PoseBuffer(name, params.buffer_period_s, params.buffer_horizon_s)
         self.stats = AgentStats()
@@ -275,10 +300,13 @@ class Agent:
                 self.stats.detections_rejected["uncertain"] += 1
                 continue
             T, cov = relative_pose(T_body_cam, T_cam_marker, marker.T_body_marker, cov_marker)
+            wrong = self.faults.detection(t, target, T) if self.faults is not None else None
+            if wrong is not None:
+                T = wrong
             msg = DetectionMessage(own, T, cov, marker.robot, marker.landmark, det.tag_id, det.distance_m)
             self._last_detection[target] = t
             self.stats.detections_used += 1
-            self.detections.append(DetectionRecord(t, det.tag_id, target, T, cov, det.distance_m, det.ambiguity))
+            self.detections.append(DetectionRecord(t, det.tag_id, target, T, cov, det.distance_m, det.ambiguity, wrong is not None))
             out.append(self._outgoing(KIND_DETECTION, msg))
         return out
 
@@ -319,52 +347,62 @@ class Agent:
         return self._apply(env)
 
     def _apply(self, env: Envelope) -> list[Outgoing]:
-        body = env.body
-        graph = self.graph
-        if isinstance(body, PoseEstimate):
-            if body.answer:
-                self._register(body)
-            elif body.robot != self.name:
-                latest = self.peer_pose.get(body.robot)
-                if latest is None or body.t > latest.t:
-                    self.peer_pose[body.robot] = body
-            return []
-        if isinstance(body, FrameSwitchMessage):
-            graph.add_frame_switch(body.robot, body.index_from, body.t, body.T_from_to, body.cov)
-            self.peer_switches[body.robot][body.index_from] = body.T_from_to
-            self.dirty = True
-            return []
-        if isinstance(body, SubmapMessage):
-            if body.robot != self.name:
-                submap = Submap.from_bytes(body.data)
-                self.peer_submaps[(body.robot, body.index)] = submap
-                if self.matcher is not None:
-                    self.matcher.add_submap(submap)
-            return []
-        if isinstance(body, MatchAttemptMessage):
+        """Hand the message's body to its handler (:attr:`_HANDLERS`, by body type); returns the answers."""
+        return self._HANDLERS[type(env.body)](self, env.body)
+
+    def _on_pose(self, body: PoseEstimate) -> list[Outgoing]:
+        """An answer to a detection becomes a filter pose v; a periodic estimate updates the belief."""
+        if body.answer:
+            self._register(body)
+        elif body.robot != self.name:
+            latest = self.peer_pose.get(body.robot)
+            if latest is None or body.t > latest.t:
+                self.peer_pose[body.robot] = body
+        return []
+
+    def _on_frame_switch(self, body: FrameSwitchMessage) -> list[Outgoing]:
+        self.graph.add_frame_switch(body.robot, body.index_from, body.t, body.T_from_to, body.cov)
+        self.peer_switches[body.robot][body.index_from] = body.T_from_to
+        self.dirty = True
+        return []
+
+    def _on_submap(self, body: SubmapMessage) -> list[Outgoing]:
+        if body.robot != self.name:
+            submap = Submap.from_bytes(body.data)
+            self.peer_submaps[(body.robot, body.index)] = submap
             if self.matcher is not None:
-                self.matcher.mark_attempted((body.robot_a, body.index_a), (body.robot_b, body.index_b))
+                self.matcher.add_submap(submap)
+        return []
+
+    def _on_match_attempt(self, body: MatchAttemptMessage) -> list[Outgoing]:
+        if self.matcher is not None:
+            self.matcher.mark_attempted((body.robot_a, body.index_a), (body.robot_b, body.index_b))
+        return []
+
+    def _on_loop_closure(self, body: LoopClosureMessage) -> list[Outgoing]:
+        """A submap match c, once per pair (matchers on two robots may race for it)."""
+        pair = ((body.robot_a, body.index_a), (body.robot_b, body.index_b))
+        if self.matcher is not None:
+            self.matcher.mark_attempted(*pair)
+        if pair in self._closed:
+            self.stats.duplicate_closures += 1
             return []
-        if isinstance(body, LoopClosureMessage):
-            pair = ((body.robot_a, body.index_a), (body.robot_b, body.index_b))
-            if self.matcher is not None:
-                self.matcher.mark_attempted(*pair)
-            if pair in self._closed:
-                self.stats.duplicate_closures += 1
-                return []
-            self._closed.add(pair)
-            if self.matcher is not None:
-                self.matcher.stale = True
-            graph.add_match(body.robot_a, body.frame_a, body.robot_b, body.frame_b, body.T_a_b, body.cov)
-            self.dirty = True
-            return []
-        # a detection or landmark observation
+        self._closed.add(pair)
+        if self.matcher is not None:
+            self.matcher.stale = True
+        self.graph.add_match(body.robot_a, body.frame_a, body.robot_b, body.frame_b, body.T_a_b, body.cov)
+        self.dirty = True
+        return []
+
+    def _on_detection(self, body: DetectionMessage) -> list[Outgoing]:
+        """A detection d or landmark observation o with the detector's pose; a detection of this robot
+        is answered with its own pose at that time from its buffer (thesis 4.2.2)."""
         pose = body.detector_pose
         self._register(pose)
         if body.landmark is not None:
-            graph.add_landmark_observation(pose.robot, pose.t, body.landmark, body.T_detector_target, body.cov)
+            self.graph.add_landmark_observation(pose.robot, pose.t, body.landmark, body.T_detector_target, body.cov)
         else:
-            graph.add_detection(pose.robot, body.target_robot, pose.t, body.T_detector_target, body.cov)
+            self.graph.add_detection(pose.robot, body.target_robot, pose.t, body.T_detector_target, body.cov)
         self.dirty = True
         if body.target_robot != self.name or (self.name, pose.t) in self._registered:
             return []
@@ -373,6 +411,16 @@ class Agent:
             self.stats.unanswerable += 1
             return []
         return [self._outgoing(KIND_DETECTION, PoseEstimate(self.name, pose.t, mine.frame_index, mine.T_frame_body, mine.cov, answer=True))]
+
+    #: Message body type -> handler.
+    _HANDLERS: ClassVar[dict[type, Callable[[Agent, Any], list[Outgoing]]]] = {
+        PoseEstimate: _on_pose,
+        FrameSwitchMessage: _on_frame_switch,
+        SubmapMessage: _on_submap,
+        MatchAttemptMessage: _on_match_attempt,
+        LoopClosureMessage: _on_loop_closure,
+        DetectionMessage: _on_detection,
+    }
 
     def _register(self, pose: PoseEstimate) -> None:
         key = (pose.robot, pose.t)
@@ -385,11 +433,14 @@ class Agent:
 
     def optimize(self, now: float) -> UpdateStats:
         """One iSAM2 step with what arrived; every ``covariance_period_s`` also the marginal
-        covariances of each connected robot's latest submap origin."""
+        covariances of each connected robot's latest submap origin. Never raises on a
+        numerical failure: the graph recovers from iSAM2's (``graph.recoveries``, stamped
+        with ``now``); a marginal that cannot be computed keeps its previous value and is
+        counted in ``stats.marginal_failures``."""
         connected = len(self.graph.connected_robots())
-        stats = self.graph.update()
+        stats = self.graph.update(t=now)
         if len(self.graph.connected_robots()) > connected:  # a robot joined with its backlog: converge
-            stats = self.graph.update(extra_iterations=self.params.join_iterations)
+            stats = self.graph.update(extra_iterations=self.params.join_iterations, t=now)
         self.stats.graph_updates.append(stats)
         self.dirty = False
         if now - self._last_covariance_t >= self.params.covariance_period_s:
@@ -397,8 +448,12 @@ class Agent:
             t0 = time.perf_counter()
             for robot in self.graph.connected_robots():
                 index = self.graph.latest_submap(robot)
-                if index is not None:
+                if index is None:
+                    continue
+                try:
                     self.marginals[(robot, index)] = self.graph.marginal_covariance(robot, index)
+                except (RuntimeError, ValueError):  # gtsam: the Bayes tree cannot give this marginal
+                    self.stats.marginal_failures += 1
             self.stats.covariance_s.append(time.perf_counter() - t0)
         return stats
 
@@ -419,6 +474,13 @@ class Agent:
     def finish_match(self, cand: Candidate, t: float) -> tuple[list[Outgoing], MatchRecord]:
         """Match the pair: a loop closure for the team (and this robot's graph) on success."""
         record = self.matcher.attempt(cand, t)
+        if self.faults is not None:
+            res = record.result
+            wrong = self.faults.match(t, res.a, res.b, record.prior.T_a_b, res.success)
+            if wrong is not None:  # the attempt's record shows the wrong closure (reason "injected")
+                T_a_b, cov = wrong
+                record = replace(record, result=replace(res, T_a_b=T_a_b, cov=cov, reason="injected"))
+                self.matcher.records[-1] = record
         res = record.result
         if not res.success:
             return [], record

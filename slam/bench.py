@@ -1,4 +1,4 @@
-"""Benchmark of the multi-robot graph (issue 6): iSAM2 update time against graph size for
+"""Benchmark of the multi-robot graph (thesis 4.2.3): iSAM2 update time against graph size for
 teams of up to 10 robots over one hour, and the cost of the marginal covariances.
 
 Synthetic and seeded: each robot drives at 0.3 m/s with a slowly varying heading and

@@ -250,7 +250,8 @@ class LocalReferenceFilter:
     image trigger right after the IMU sample of that time; :meth:`update_relative_pose`
     when the visual odometry's delta between two clones arrives (delays are compensated);
     :meth:`drop_clone` when a clone is no longer referenced; :meth:`update_body_velocity`
-    for wheel odometry; :meth:`frame_switch` when the mapping starts a new submap.
+    for wheel odometry; :meth:`update_zero_velocity` while the robot rests (detected by
+    slam.local_estimator); :meth:`frame_switch` when the mapping starts a new submap.
     """
 
     def __init__(
@@ -696,23 +697,54 @@ class LocalReferenceFilter:
         p = self.params.velocity_gate_probability
         return self._update(idx, H, r, Rm, None if p is None else _chi2_gate(p, n))
 
-    def update_zero_velocity(self, velocity_std: float = 0.005, angular_rate_std: float | None = None) -> float:
+    def update_zero_velocity(
+        self,
+        velocity_std: float = 0.005,
+        angular_rate_std: float | None = None,
+        gyro_mean: np.ndarray | None = None,
+        gyro_mean_var: float | None = None,
+        gate_probability: float | None = None,
+    ) -> float:
         """Zero-velocity update for a robot known to stand still: ``v = 0`` with
         ``velocity_std`` per axis and, if ``angular_rate_std`` is given, ``omega = 0``
-        through the latest gyro sample (observes the gyro biases). With the IMU alone this
-        is what makes roll and pitch converge at rest: a tilt error turns gravity into
-        horizontal acceleration that the zero velocity contradicts. Returns the NIS."""
+        (observes the gyro biases). The rate is read from the latest gyro sample (variance
+        ``angular_rate_std^2`` plus one sample's white noise), or from ``gyro_mean``, the
+        mean raw gyro reading over the rest window, whose variance per axis is
+        ``angular_rate_std^2 + gyro_mean_var`` (``gyro_mean_var``: the white noise of that
+        mean, ``gyro_noise_density^2 / duration``). With the IMU alone this is what makes
+        roll and pitch converge at rest: a tilt error turns gravity into horizontal
+        acceleration that the zero velocity contradicts. ``gate_probability`` sets a
+        chi-square gate (3 dof) on the NIS of the velocity part alone (the rate part
+        is about the gyro bias, not about rest, and would only dilute it): a rest that the
+        filter's velocity contradicts is rejected (state unchanged), as the
+        visual-odometry deltas are. Returns the NIS of the velocity part."""
         if not velocity_std > 0.0 or (angular_rate_std is not None and not angular_rate_std > 0.0):
             raise FilterException(f"standard deviations must be > 0, got {velocity_std!r}, {angular_rate_std!r}")
-        if angular_rate_std is not None and self._w_prev is None:
+        if (gyro_mean is None) != (gyro_mean_var is None):
+            raise FilterException("gyro_mean and gyro_mean_var go together")
+        if gyro_mean is not None:
+            if angular_rate_std is None:
+                raise FilterException("gyro_mean needs angular_rate_std")
+            gyro_mean = _vector(gyro_mean, 3, "gyro_mean")
+            if not gyro_mean_var > 0.0:
+                raise FilterException(f"gyro_mean_var must be > 0, got {gyro_mean_var!r}")
+            gyro_mean_var = float(gyro_mean_var)
+        elif angular_rate_std is not None and self._w_prev is None:
             raise FilterException("a zero-rate update needs an IMU sample first")
-        args = (float(velocity_std), None if angular_rate_std is None else float(angular_rate_std))
+        if gate_probability is not None and not 0.0 < gate_probability < 1.0:
+            raise FilterException(f"gate_probability must be in (0, 1) or None, got {gate_probability!r}")
+        args = (float(velocity_std), None if angular_rate_std is None else float(angular_rate_std), gyro_mean, gyro_mean_var, gate_probability)
         nis = self._zero_velocity(*args)
         if self._log:
             self._log.append(["zupt", self._t, *args])
         return nis
 
-    def _zero_velocity(self, velocity_std, angular_rate_std) -> float:
+    @staticmethod
+    def zero_velocity_gate(gate_probability: float) -> float:
+        """Chi-square threshold (3 dof) on the velocity NIS of :meth:`update_zero_velocity`."""
+        return _chi2_gate(gate_probability, 3)
+
+    def _zero_velocity(self, velocity_std, angular_rate_std, gyro_mean=None, gyro_mean_var=None, gate_probability=None) -> float:
         if angular_rate_std is None:
             idx = np.r_[3:6]
             H = np.eye(3)
@@ -723,10 +755,18 @@ class LocalReferenceFilter:
             H = np.zeros((6, 6))
             H[0:3, 0:3] = np.eye(3)
             H[3:6, 3:6] = -np.eye(3)
-            r = np.concatenate([-self._v, -(self._w_prev - self._bw)])
-            wvar = angular_rate_std**2 + self.params.gyro_noise_density**2 / max(self._dt_last, 1e-3)
-            Rm = np.diag([velocity_std**2] * 3 + [wvar] * 3)
-        return self._update(idx, H, r, Rm, None)
+            if gyro_mean is None:
+                w, wnoise = self._w_prev, self.params.gyro_noise_density**2 / max(self._dt_last, 1e-3)
+            else:
+                w, wnoise = gyro_mean, gyro_mean_var
+            r = np.concatenate([-self._v, -(w - self._bw)])
+            Rm = np.diag([velocity_std**2] * 3 + [angular_rate_std**2 + wnoise] * 3)
+        S_v = self._Pbuf[_V, _V] + np.eye(3) * velocity_std**2
+        nis_v = float(self._v @ np.linalg.solve(S_v, self._v))
+        if gate_probability is not None and nis_v > _chi2_gate(gate_probability, 3):
+            return nis_v
+        self._update(idx, H, r, Rm, None)
+        return nis_v
 
     def _update(self, idx: np.ndarray, H: np.ndarray, r: np.ndarray, Rm: np.ndarray, gate: float | None) -> float:
         """EKF update with a Jacobian ``H`` over the state entries ``idx``; error injection
@@ -871,7 +911,7 @@ class LocalReferenceFilter:
             elif kind == "vel":
                 self._velocity(*event[2:6])
             else:  # "zupt"
-                self._zero_velocity(*event[2:4])
+                self._zero_velocity(*event[2:])
         return nis
 
     def _trim(self) -> None:

@@ -10,8 +10,8 @@ landmark observation refers to them) and landmarks ``l[k]``. Factors, all binary
 - ``w`` frame switch ``s[r,i] -> s[r,i+1]`` and ``v`` filter pose ``s[r,j] -> x[r,t]`` (local reference
   topology, Fig. 4.2b); the online pose is ``s_j (+) v_t`` (eq. 4.6);
 - ``d`` robot detection ``x[a,t] -> x[b,t]`` (eq. 4.7), ``o`` landmark observation ``x[r,t] -> l[k]`` and
-  ``c`` submap match ``s[a,i] -> s[b,j]``, each with the Cauchy kernel (eq. 4.10, weights eq. 4.11) on the
-  Mahalanobis distance, ``GraphParams.cauchy_c`` (``math.inf``: plain Gaussian);
+  ``c`` submap match ``s[a,i] -> s[b,j]``, the measured factors, robust by ``GraphParams.robust``
+  (:class:`RobustKernel`, below);
 - ``u`` sequential odometry (Fig. 4.2a, eq. 4.8, 4.9), only in :attr:`Topology.SEQUENTIAL`, for comparison:
   per robot and frame ``k`` the nodes ``s_k``, the frame's robot poses in the graph and ``s_{k+1}`` are
   ordered by time and chained with ``u = P_a^-1 P_b``, covariance ``Σ_b - Σ_a`` with eigenvalues clipped
@@ -27,6 +27,51 @@ through pending factors (in content order: type, node names, measurement, never 
 stays pending, so a chain that nothing connects to the anchored component never reaches iSAM2 (Cholesky
 would find it indeterminant) and joins with its whole backlog once something does.
 
+A factor is also kept pending until every variable it touches is tied into the topology of Fig. 4.2b:
+a submap origin ``s[r,i]`` once robot ``r``'s frame switches ``w`` from ``s[r,0]`` up to ``s[r,i]`` are all
+registered (its chain of submap origins has no gap), a robot pose ``x[r,t]`` once its filter pose ``v`` is
+registered and its frame is tied, a landmark always. So a detection whose answering pose is lost or still
+on its way, or a pose in a frame whose switch arrives late, waits instead of leaving a variable held from
+one side only. (A submap origin whose only factor was a confident ``v``, sampled just after its frame
+switch, hanging on a robot pose that one loose landmark observation held, made iSAM2 fail: iSAM2 puts
+the new variables last, here both in the root clique, and GTSAM's pivot check rejected the origin's
+pivot, the loose anchor's information, as below 2^-24 of its diagonal, the confident ``v``'s.) The
+factors that end up in the estimate are the same as without the rule; only a detection whose answer
+comes later, or a factor in a frame whose switch comes later, enters with it instead of before it.
+
+:meth:`MultiRobotGraph.update` never raises on a failure of iSAM2 (which may still fail the same way when a
+robot joins through one loose detection while its filter pose is confident): it rebuilds iSAM2 from the
+batch graph (one elimination of everything, rooted at the prior) seeded with the current estimate; if that
+fails too, it drops the newest measurement (``d``, ``o``, ``c``) among the new factors that touches the
+variable gtsam named (else any new factor touching it, else the newest new factor) for good and tries
+again; with no new factor left, it re-seeds from batch Levenberg-Marquardt, then uses QR; if all that
+fails the previous estimate stays and the next update starts with a rebuild. Each recovery is recorded in
+:attr:`MultiRobotGraph.recoveries` (:class:`GraphRecovery`), each dropped factor in
+:meth:`MultiRobotGraph.dropped_factors`.
+
+Robust options for the measured factors (thesis 4.2.3: "overconfident, erroneous loop closure constraints
+can corrupt the entire graph optimization result"), :class:`RobustKernel`:
+
+- ``cauchy`` (default, the thesis's choice): the Cauchy M-estimator (eq. 4.10, IRLS weights eq. 4.11) on the
+  Mahalanobis distance, ``GraphParams.cauchy_c`` (``math.inf``: plain Gaussian). It bounds an outlier's pull
+  but never removes it, and its weights change only when iSAM2 relinearises;
+- ``none``: plain Gaussian (eq. 4.5);
+- ``gnc``: Graduated Non-Convexity (Yang et al. 2020, GTSAM's ``GncOptimizer`` with Levenberg-Marquardt) as
+  an outlier classifier beside iSAM2. GNC is a batch method, so it does not replace iSAM2: whenever new
+  measured factors can enter, one GNC run over the batch graph (the factors in iSAM2, the new ones and the
+  ones rejected so far; the prior, w, v and u factors as known inliers, ``setKnownInliers``; seeded with
+  the current estimate) judges every measured factor, and only those it calls inliers stay in or enter
+  iSAM2, with plain Gaussian noise; the others are removed from iSAM2 by their factor index (as the
+  sequential topology removes ``u``) and kept aside, re-admitted when a later run calls them inliers. The
+  loss is truncated least squares (TLS): its weights converge to exactly 0 or 1, a classification without
+  a threshold of its own, and its solution is what iSAM2 then computes (the inliers with Gaussian noise, the
+  outliers left out); Geman-McClure's weights never reach 0. A measured factor is an inlier when its
+  squared Mahalanobis distance is below the ``GraphParams.gnc_inlier_probability`` quantile of a 6-dof
+  chi-square (0.99: 16.8, a distance of 4.1, next to the Cauchy kernel's 3.5). An outlier whose removal
+  would cut a variable off the anchored component is kept (a bridge: GNC satisfies it exactly anyway).
+  Each run is a :class:`GncRun` in :attr:`MultiRobotGraph.gnc_runs`; a run that fails leaves the
+  classification as it was (the new factors enter) and records the error.
+
 Back-end notes. iSAM2 factorises with Cholesky; the sequential topology uses QR, because the eq. 4.9 floor
 (information up to 1e10) made Cholesky report an indeterminant system on chains whose filter covariance
 does not grow. iSAM2 relinearises a variable only once its update exceeds ``relinearize_threshold``, and the
@@ -40,8 +85,10 @@ update): about 2 ms per update in the local reference topology (1.2 ms ``ISAM2.u
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 from functools import cached_property
@@ -49,8 +96,7 @@ from functools import cached_property
 import gtsam
 import numpy as np
 
-from slam.lie import se3_inv
-from slam.vo import adjoint
+from slam.lie import adjoint, se3_inv
 
 Node = tuple[str, str, int | float]  # (kind "s" | "x" | "l", robot ("" for landmarks), index | time | landmark id)
 
@@ -59,9 +105,21 @@ class GraphException(Exception):
     """Bad input to the multi-robot graph (shapes, non-finite or indefinite covariances, self-detections)."""
 
 
+class _StaleIsam(RuntimeError):
+    """iSAM2 was left failed by an earlier update's recovery: rebuild it before anything else."""
+
+
 class Topology(StrEnum):
     LOCAL_REFERENCE = "local_reference"  # Fig. 4.2b: w and v factors
     SEQUENTIAL = "sequential"  # Fig. 4.2a: u factors (eq. 4.8, 4.9)
+
+
+class RobustKernel(StrEnum):
+    """How the measured factors (d, c, o) are made robust (module docstring; thesis 4.2.3)."""
+
+    CAUCHY = "cauchy"  # eq. 4.10, weights eq. 4.11
+    GNC = "gnc"  # Graduated Non-Convexity (TLS) as the outlier classifier, Gaussian in iSAM2
+    NONE = "none"  # plain Gaussian (eq. 4.5)
 
 
 class FactorType(StrEnum):
@@ -76,10 +134,14 @@ class FactorType(StrEnum):
 
 @dataclass(frozen=True)
 class GraphParams:
-    """``cauchy_c`` (eq. 4.10, Mahalanobis units; ``math.inf`` for no kernel) applies to d, c and o factors."""
+    """``robust`` (:class:`RobustKernel`) applies to d, c and o factors: ``cauchy_c`` (eq. 4.10, Mahalanobis
+    units; ``math.inf`` for no kernel) with ``cauchy``, ``gnc_inlier_probability`` (chi-square quantile of an
+    inlier's squared Mahalanobis distance, in (0, 1)) with ``gnc``."""
 
     topology: Topology = Topology.LOCAL_REFERENCE
+    robust: RobustKernel = RobustKernel.CAUCHY
     cauchy_c: float = 3.5
+    gnc_inlier_probability: float = 0.99
     prior_sigma_rad: float = 1e-4
     prior_sigma_m: float = 1e-4
     min_sequential_var: float = 1e-10
@@ -89,6 +151,10 @@ class GraphParams:
     def __post_init__(self):
         if not isinstance(self.topology, Topology):
             raise GraphException(f"GraphParams.topology must be one of {[t.value for t in Topology]}, got {self.topology!r}")
+        if not isinstance(self.robust, RobustKernel):
+            raise GraphException(f"GraphParams.robust must be one of {[k.value for k in RobustKernel]}, got {self.robust!r}")
+        if not 0.0 < self.gnc_inlier_probability < 1.0:
+            raise GraphException(f"GraphParams.gnc_inlier_probability must be in (0, 1), got {self.gnc_inlier_probability!r}")
         for name in ("cauchy_c", "prior_sigma_rad", "prior_sigma_m", "min_sequential_var"):
             if not getattr(self, name) > 0.0:
                 raise GraphException(f"GraphParams.{name} must be > 0, got {getattr(self, name)!r}")
@@ -104,6 +170,38 @@ class UpdateStats:
     factors_added: int
     variables_added: int
     factors_removed: int
+    recovered: bool = False  # iSAM2 failed and was rebuilt (see :class:`GraphRecovery`)
+
+
+@dataclass(frozen=True)
+class GraphRecovery:
+    """One iSAM2 failure :meth:`MultiRobotGraph.update` recovered from (module docstring)."""
+
+    t: float | None  # the caller's time of the update (simulated seconds), if it gave one
+    update: int  # the number of the update that failed (0: the first that reached iSAM2)
+    error: str  # gtsam's message, its first line
+    variable: str | None  # the variable gtsam named, e.g. ``x[lru2,52.2]``
+    action: str  # RECOVERY_ACTIONS: what finally worked
+    dropped: tuple[str, ...]  # the factors left out for good (:meth:`MultiRobotGraph.dropped_factors`)
+
+
+@dataclass(frozen=True)
+class GncRun:
+    """One GNC classification of the measured factors (``robust: gnc``, module docstring)."""
+
+    t: float | None  # the caller's time of the update (simulated seconds), if it gave one
+    update: int  # the number of the update it preceded (as :attr:`GraphRecovery.update`)
+    factors: int  # factors in the batch graph GNC solved
+    measured: int  # measured factors (d, c, o) it judged
+    rejected: tuple[str, ...]  # the measured factors it left out (``type: node -> node``)
+    newly_rejected: int  # of those, the ones that were in iSAM2 or new
+    readmitted: int  # measured factors rejected before that it called inliers
+    bridges: int  # outliers kept because leaving them out would cut a variable off
+    wall_s: float
+    error: str | None = None  # gtsam's message when GNC failed (the classification was left as it was)
+
+
+RECOVERY_ACTIONS = ("rebuilt", "rebuilt from levenberg_marquardt", "rebuilt with qr", "failed: previous estimate kept")
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,6 +231,18 @@ class _Registered:
 
 
 _ROBUST = frozenset({FactorType.DETECTION, FactorType.MATCH, FactorType.LANDMARK})
+# what gtsam's C++ exceptions become in Python (IndeterminateSystemException: RuntimeError; std::domain_error,
+# std::invalid_argument: ValueError)
+_GTSAM_ERRORS = (RuntimeError, ValueError)
+# extra iSAM2 iterations after GNC took factors out of it: one Gauss-Newton step from a linearisation point
+# the outliers had pulled does not reach the new optimum (test_gnc_readmits_... in tests/test_graph.py, two
+# 0.5 m / 10 deg outliers removed: 0.68 mm from batch Levenberg-Marquardt without, 0.01 mm with 1 or 3)
+_SETTLE_ITERATIONS = 2
+
+
+def _describe(f: _Factor) -> str:
+    """``type: node -> node``, e.g. ``o: x[lru2,52.2] -> l[0]``."""
+    return f"{f.type.value}: " + " -> ".join(_name(n) for n in f.nodes)
 
 
 def _name(node: Node) -> str:
@@ -206,11 +316,8 @@ class MultiRobotGraph:
     def __init__(self, owner: str, params: GraphParams = GraphParams()):
         self.owner = _robot(owner, "owner")
         self.params = params
-        isam_params = gtsam.ISAM2Params()
-        isam_params.setRelinearizeThreshold(params.relinearize_threshold)
-        isam_params.relinearizeSkip = params.relinearize_skip
-        isam_params.setFactorization("QR" if params.topology is Topology.SEQUENTIAL else "CHOLESKY")
-        self._isam = gtsam.ISAM2(isam_params)
+        self._factorization = "QR" if params.topology is Topology.SEQUENTIAL else "CHOLESKY"
+        self._isam = self._new_isam()
         self._estimate = gtsam.Values()
         self._initial = gtsam.Values()  # every variable's value when it entered iSAM2
         self._keys: dict[Node, int] = {}
@@ -224,7 +331,12 @@ class MultiRobotGraph:
         self._derived: dict[tuple, _Factor] = {}  # prior, w, v and u factors built so far, by id (inputs never change)
         sigmas = [params.prior_sigma_rad] * 3 + [params.prior_sigma_m] * 3
         self._prior = _Factor(FactorType.PRIOR, (("s", self.owner, 0),), np.eye(4), np.diag(np.square(sigmas)))
+        self._dropped: dict[tuple, _Factor] = {}  # factors left out for good by a recovery, by id
+        self._stale: str | None = None  # a recovery that failed: the next update rebuilds iSAM2
+        self._rejected: dict[tuple, _Factor] = {}  # measured factors the last GNC run called outliers, by id
         self.update_times: list[float] = []
+        self.recoveries: list[GraphRecovery] = []
+        self.gnc_runs: list[GncRun] = []
 
     # ------------------------------------------------------------------ inputs
 
@@ -269,36 +381,36 @@ class MultiRobotGraph:
 
     # ------------------------------------------------------------------ optimisation
 
-    def update(self, extra_iterations: int = 0) -> UpdateStats:
-        """Move every pending factor that connects to the anchored component into iSAM2 and run ``ISAM2.update``
-        (plus ``extra_iterations`` further ones). Nothing to do and no extra iterations: iSAM2 is not called."""
+    def update(self, extra_iterations: int = 0, t: float | None = None) -> UpdateStats:
+        """Move every pending factor that is tied into the topology and connects to the anchored component into
+        iSAM2 and run ``ISAM2.update`` (plus ``extra_iterations`` further ones). Nothing to do and no extra
+        iterations: iSAM2 is not called. Never raises on a failure of iSAM2: it recovers (module docstring) and
+        records a :class:`GraphRecovery` stamped with ``t``, the caller's time. With ``robust: gnc`` and new
+        measured factors, a GNC classification comes first (module docstring; its time is part of the update's)."""
         start = time.perf_counter()
         if isinstance(extra_iterations, bool) or not isinstance(extra_iterations, int) or extra_iterations < 0:
             raise GraphException(f"extra_iterations must be an int >= 0, got {extra_iterations!r}")
-        desired = self._desired()
-        removed = [fid for fid in self._in_isam if fid not in desired]
-        pending = sorted(((fid, f) for fid, f in desired.items() if fid not in self._in_isam), key=lambda item: item[1].signature)
-        initial = self._initialise([f for _, f in pending])
-        addable = [(fid, f) for fid, f in pending if all(n in self._known or n in initial for n in f.nodes)]
-        if not (addable or removed or extra_iterations):
+        t = None if t is None else _time(t, "t")
+        removed, addable, initial = self._plan()
+        if self.params.robust is RobustKernel.GNC and any(f.type in _ROBUST for _, f in addable):
+            if self._classify(t):  # outliers leave iSAM2: let it settle without them
+                extra_iterations = max(extra_iterations, _SETTLE_ITERATIONS)
+            removed, addable, initial = self._plan()
+        if not (addable or removed or extra_iterations or self._stale):
             return UpdateStats(time.perf_counter() - start, 0, 0, 0)
-        graph = gtsam.NonlinearFactorGraph()
-        for _, f in addable:
-            graph.add(self._gtsam_factor(f))
-        values = gtsam.Values()
-        for node, T in initial.items():
-            values.insert(self._key(node), gtsam.Pose3(T))
-        result = self._isam.update(graph, values, [self._in_isam.pop(fid)[0] for fid in removed])
-        for (fid, f), index in zip(addable, result.getNewFactorsIndices()):
-            self._in_isam[fid] = (index, f)
-        for _ in range(extra_iterations):
-            self._isam.update()
-        self._initial.insert(values)
-        self._known.update(initial)
-        self._estimate = self._isam.calculateEstimate()
+        known = len(self._known)
+        try:
+            if self._stale:
+                raise _StaleIsam(self._stale)
+            self._commit(addable, initial, removed, extra_iterations)
+            recovered = False
+        except _GTSAM_ERRORS as exc:  # gtsam's IndeterminateSystemException (and any other failure inside iSAM2)
+            self._recover(exc, t, extra_iterations)
+            recovered = True
+            addable = [(fid, f) for fid, f in addable if fid in self._in_isam]
         wall = time.perf_counter() - start
         self.update_times.append(wall)
-        return UpdateStats(wall, len(addable), len(initial), len(removed))
+        return UpdateStats(wall, len(addable), len(self._known) - known, len(removed), recovered)
 
     def to_batch_values(self) -> gtsam.Values:
         """The initial value of every variable in the estimate (as it entered iSAM2)."""
@@ -380,7 +492,17 @@ class MultiRobotGraph:
         return {t.value: counts[t.value] for t in FactorType}
 
     def pending_count(self) -> int:
+        """Factors the inputs define that are not in the estimate (not yet connected or tied; not the dropped, nor
+        those GNC rejected: :meth:`rejected_factors`)."""
         return sum(fid not in self._in_isam for fid in self._desired())
+
+    def dropped_factors(self) -> list[str]:
+        """Every factor a recovery left out for good (:class:`GraphRecovery`), as ``type: node -> node``."""
+        return [_describe(f) for f in self._dropped.values()]
+
+    def rejected_factors(self) -> list[str]:
+        """The measured factors GNC calls outliers now (``robust: gnc``; none otherwise), as ``type: node -> node``."""
+        return [_describe(f) for f in self._rejected.values()]
 
     def node_count(self) -> int:
         return len(self._known)
@@ -429,10 +551,240 @@ class MultiRobotGraph:
     def _value(self, node: Node) -> np.ndarray | None:
         return self._estimate.atPose3(self._keys[node]).matrix() if node in self._known else None
 
-    def _desired(self) -> dict[tuple, _Factor]:
-        """Every factor the inputs so far define, by a stable id (in iSAM2 or pending)."""
+    def _spine_ends(self) -> dict[str, int]:
+        """Per robot, the last submap index its registered frame switches (none dropped) tie to ``s[r,0]``."""
+        ends: dict[str, int] = {}
+        for robot, _ in self._switches:
+            if robot not in ends:
+                end = 0
+                while (robot, end) in self._switches and ("w", robot, end) not in self._dropped:
+                    end += 1
+                ends[robot] = end
+        return ends
+
+    def _tied(self, node: Node, ends: dict[str, int]) -> bool:
+        """Whether ``node`` is tied into the topology of Fig. 4.2b (module docstring): ``s[r,i]`` with no gap in
+        the w chain from ``s[r,0]``, ``x[r,t]`` with its registered v in such a frame, any landmark."""
+        kind, robot, index = node
+        if kind == "l":
+            return True
+        if kind == "x":
+            pose = self._poses.get((robot, index))
+            if pose is None or ("v", robot, index) in self._dropped:
+                return False
+            index = pose.frame
+        return index <= ends.get(robot, 0)
+
+    def _plan(self, include_rejected: bool = False) -> tuple[list[tuple], list[tuple[tuple, _Factor]], dict[Node, np.ndarray]]:
+        """``(removed, addable, initial)``: ids of factors in iSAM2 no longer desired; pending factors, tied into
+        the topology, whose variables are in the estimate or initialised (content order); new variables' values.
+        ``include_rejected``: the measured factors GNC rejected count as desired (what a GNC run judges)."""
+        desired = self._desired(include_rejected)
+        removed = [fid for fid in self._in_isam if fid not in desired]
+        ends = self._spine_ends()
+        pending = sorted(
+            ((fid, f) for fid, f in desired.items() if fid not in self._in_isam and all(self._tied(n, ends) for n in f.nodes)),
+            key=lambda item: item[1].signature,
+        )
+        initial = self._initialise([f for _, f in pending])
+        addable = [(fid, f) for fid, f in pending if all(n in self._known or n in initial for n in f.nodes)]
+        return removed, addable, initial
+
+    def _new_isam(self) -> gtsam.ISAM2:
+        isam_params = gtsam.ISAM2Params()
+        isam_params.setRelinearizeThreshold(self.params.relinearize_threshold)
+        isam_params.relinearizeSkip = self.params.relinearize_skip
+        isam_params.setFactorization(self._factorization)
+        return gtsam.ISAM2(isam_params)
+
+    def _commit(self, addable: list[tuple[tuple, _Factor]], initial: dict[Node, np.ndarray], removed: list[tuple], extra_iterations: int) -> None:
+        """One incremental ``ISAM2.update``; the bookkeeping changes only once iSAM2 succeeded."""
+        graph = gtsam.NonlinearFactorGraph()
+        for _, f in addable:
+            graph.add(self._gtsam_factor(f))
+        values = gtsam.Values()
+        for node, T in initial.items():
+            values.insert(self._key(node), gtsam.Pose3(T))
+        result = self._isam.update(graph, values, [self._in_isam[fid][0] for fid in removed])
+        for _ in range(extra_iterations):
+            self._isam.update()
+        estimate = self._isam.calculateEstimate()
+        for fid in removed:
+            del self._in_isam[fid]
+        for (fid, f), index in zip(addable, result.getNewFactorsIndices()):
+            self._in_isam[fid] = (index, f)
+        self._initial.insert(values)
+        self._known.update(initial)
+        self._estimate = estimate
+
+    def _rebuild(self, seed: gtsam.Values, extra_iterations: int) -> None:
+        """A fresh iSAM2 over the factors in the estimate and the addable pending ones, in one update (one
+        elimination in a fresh order, rooted at the prior's ``s[owner,0]``), the known variables seeded from
+        ``seed``; replaces the old on success. Rooted at the prior, a variable that hangs on a loosely held one
+        by a single confident factor is eliminated in a clique of its own below it, never in one clique with it
+        (the failure the topology rules of the module docstring avoid, in a new robot joining through one loose
+        detection or landmark observation while its filter pose is confident)."""
+        removed, addable, initial = self._plan()
+        kept = [(fid, f) for fid, (_, f) in sorted(self._in_isam.items(), key=lambda item: item[1][0]) if fid not in removed]
+        isam, graph, values = self._new_isam(), gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for _, f in kept + addable:
+            graph.add(self._gtsam_factor(f))
+        for node in self._known:
+            values.insert(self._keys[node], seed.atPose3(self._keys[node]))
+        new_values = gtsam.Values()
+        for node, T in initial.items():
+            new_values.insert(self._key(node), gtsam.Pose3(T))
+        values.insert(new_values)
+        rooted = gtsam.KeyGroupMap()  # the owner's first origin (the prior) last: the root of the Bayes tree
+        rooted.insert2(self._key(self._prior.nodes[0]), 1)
+        result = isam.update(graph, values, [], rooted)
+        for _ in range(extra_iterations):
+            isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], rooted)
+        estimate = isam.calculateEstimate()
+        self._isam, self._estimate = isam, estimate
+        self._in_isam = {fid: (index, f) for (fid, f), index in zip(kept + addable, result.getNewFactorsIndices())}
+        self._initial.insert(new_values)
+        self._known.update(initial)
+
+    def _recover(self, exc: Exception, t: float | None, extra_iterations: int) -> None:
+        """After iSAM2 failed (module docstring): rebuild, dropping offending new factors, then re-seeding from
+        batch Levenberg-Marquardt, then with QR; record what worked as a :class:`GraphRecovery`."""
+        error = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+        named = self._named_node(exc)
+        dropped: list[str] = []
+        seed, fallbacks, action = self._estimate, ["levenberg_marquardt", "qr"], RECOVERY_ACTIONS[0]
+        while True:
+            try:
+                self._rebuild(seed, extra_iterations)
+                self._stale = None
+                break
+            except _GTSAM_ERRORS as again:
+                victim = self._offender(again)
+                if victim is not None:
+                    self._dropped[victim] = self._desired()[victim]
+                    dropped.append(_describe(self._dropped[victim]))
+                    continue
+                if not fallbacks:
+                    action, self._stale = RECOVERY_ACTIONS[3], error
+                    break
+                fallback = fallbacks.pop(0)
+                if fallback == "levenberg_marquardt":
+                    seed, action = self._levenberg_marquardt(), RECOVERY_ACTIONS[1]
+                else:
+                    self._factorization, action = "QR", RECOVERY_ACTIONS[2]
+        for node in [n for n in self._keys if n not in self._known]:  # keys of variables that never entered
+            del self._nodes[self._keys.pop(node)]
+        self.recoveries.append(GraphRecovery(t, len(self.update_times), error, named and _name(named), action, tuple(dropped)))
+
+    def _named_node(self, exc: Exception) -> Node | None:
+        """The variable a gtsam exception names (``... near variable\n<key> (Symbol: x1)``), if it is ours."""
+        match = re.search(r"variable\s+(\d+)", str(exc))
+        return self._nodes.get(int(match.group(1))) if match else None
+
+    def _offender(self, exc: Exception) -> tuple | None:
+        """The id of the new factor to drop after a failed rebuild: the newest measurement among the addable
+        factors that touches the variable gtsam named, else any addable factor touching it, else the newest
+        addable measurement, else the last addable factor; None when only the prior or nothing is new."""
+        _, addable, _ = self._plan()
+        candidates = [(fid, f) for fid, f in addable if f.type is not FactorType.PRIOR]
+        named = self._named_node(exc)
+        touching = [(fid, f) for fid, f in candidates if named in f.nodes]
+        for group in (touching, candidates):
+            measured = sorted(((fid, f) for fid, f in group if f.type in _ROBUST), key=lambda item: item[0][1])
+            if measured:
+                return measured[-1][0]
+            if group:
+                return group[-1][0]
+        return None
+
+    def _classify(self, t: float | None) -> bool:
+        """One GNC run (``robust: gnc``, module docstring) over the factors in iSAM2, the addable new ones and the
+        rejected ones, seeded with the estimate (new variables initialised as :meth:`_plan` does); every measured
+        factor it judges is an inlier or rejected from then on. Records a :class:`GncRun`; never raises on a
+        failure of GNC (the classification stays). True when a factor in iSAM2 is now rejected."""
+        start = time.perf_counter()
+        removed, addable, initial = self._plan(include_rejected=True)
+        in_isam = sorted(self._in_isam.items(), key=lambda item: item[1][0])
+        factors = [(fid, f) for fid, (_, f) in in_isam if fid not in removed] + addable
+        temporary = {node: gtsam.symbol("g", i) for i, node in enumerate(initial)}  # no keys of their own yet
+
+        def key(node: Node) -> int:
+            return self._keys[node] if node in self._known else temporary[node]
+
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for _, f in factors:
+            graph.add(self._gtsam_factor(f, key))
+        for node in self._known:
+            values.insert(self._keys[node], self._estimate.atPose3(self._keys[node]))
+        for node, T in initial.items():
+            values.insert(temporary[node], gtsam.Pose3(T))
+        measured = [i for i, (_, f) in enumerate(factors) if f.type in _ROBUST]
+        params = gtsam.GncLMParams()
+        params.setLossType(gtsam.GncLossType.TLS)
+        params.setKnownInliers([i for i, (_, f) in enumerate(factors) if f.type not in _ROBUST])
+        try:
+            gnc = gtsam.GncLMOptimizer(graph, values, params)
+            gnc.setInlierCostThresholdsAtProbability(self.params.gnc_inlier_probability)
+            result = gnc.optimize()
+            weights = np.asarray(gnc.getWeights()).ravel()
+            thresholds = np.asarray(gnc.getInlierCostThresholds()).ravel()
+            # GNC stops as soon as the weights are binary, weights computed at the estimate before its last
+            # solve: a factor it left out that the final estimate satisfies within the threshold is an inlier
+            consistent = {i for i in measured if graph.at(i).error(result) <= thresholds[i]}
+        except Exception as exc:  # gtsam's (and any other) failure of the classifier: the graph goes on without it
+            error = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+            run = GncRun(t, len(self.update_times), len(factors), len(measured), (), 0, 0, 0, time.perf_counter() - start, error)
+            self.gnc_runs.append(run)
+            return False
+        # an outlier whose removal would cut a variable off the rest stays (a bridge): union-find over the inliers
+        parent: dict[Node, Node] = {}
+
+        def find(n: Node) -> Node:
+            parent.setdefault(n, n)
+            while parent[n] != n:
+                parent[n] = parent[parent[n]]
+                n = parent[n]
+            return n
+
+        outliers = {i for i in measured if weights[i] < 0.5 and i not in consistent}
+        for i, (_, f) in enumerate(factors):
+            roots = [find(n) for n in f.nodes]
+            if i not in outliers:
+                for r in roots[1:]:
+                    parent[r] = roots[0]
+        bridges = 0
+        for i in sorted(outliers, key=lambda i: (-weights[i], factors[i][1].signature)):
+            a, b = (find(n) for n in factors[i][1].nodes)
+            if a != b:
+                parent[b] = a
+                outliers.discard(i)
+                bridges += 1
+        judged = {factors[i][0] for i in measured}
+        rejected = {factors[i][0]: factors[i][1] for i in sorted(outliers)}
+        readmitted = sum(fid in self._rejected and fid not in rejected for fid in judged)
+        newly = sum(fid not in self._rejected for fid in rejected)
+        self._rejected = {fid: f for fid, f in self._rejected.items() if fid not in judged} | rejected
+        described = tuple(_describe(f) for f in rejected.values())
+        run = GncRun(t, len(self.update_times), len(factors), len(measured), described, newly, readmitted, bridges, time.perf_counter() - start)
+        self.gnc_runs.append(run)
+        return any(fid in self._in_isam for fid in rejected)
+
+    def _levenberg_marquardt(self) -> gtsam.Values:
+        """Batch Levenberg-Marquardt over the factors in the estimate from their initial values; the current
+        estimate where it fails."""
+        try:
+            graph = self.batch_graph()
+            values = gtsam.LevenbergMarquardtOptimizer(graph, self.to_batch_values(), gtsam.LevenbergMarquardtParams()).optimize()
+            return values if all(values.exists(self._keys[n]) for n in self._known) else self._estimate
+        except _GTSAM_ERRORS:
+            return self._estimate
+
+    def _desired(self, include_rejected: bool = False) -> dict[tuple, _Factor]:
+        """Every factor the inputs so far define, by a stable id (in iSAM2 or pending); without the measured
+        factors GNC rejected unless ``include_rejected`` (their robot poses stay, with their filter poses)."""
         desired: dict[tuple, _Factor] = {("prior",): self._prior}
-        referenced = sorted({n for f in self._measured for n in f.nodes if n[0] == "x" and (n[1], n[2]) in self._poses})
+        measured = [f for seq, f in enumerate(self._measured) if (f.type.value, seq) not in self._dropped]
+        referenced = sorted({n for f in measured for n in f.nodes if n[0] == "x" and (n[1], n[2]) in self._poses})
         if self.params.topology is Topology.LOCAL_REFERENCE:
             for (robot, i), w in self._switches.items():
                 fid = ("w", robot, i)
@@ -445,6 +797,11 @@ class MultiRobotGraph:
         self._derived.update(desired)
         for seq, f in enumerate(self._measured):
             desired[(f.type.value, seq)] = f
+        for fid in self._dropped:
+            desired.pop(fid, None)
+        if not include_rejected:
+            for fid in self._rejected:
+                desired.pop(fid, None)
         return desired
 
     def _sequential(self, desired: dict[tuple, _Factor], referenced: list[Node]) -> None:
@@ -491,11 +848,13 @@ class MultiRobotGraph:
                     queue.append(other)
         return initial
 
-    def _gtsam_factor(self, f: _Factor) -> gtsam.NonlinearFactor:
+    def _gtsam_factor(self, f: _Factor, key: Callable[[Node], int] | None = None) -> gtsam.NonlinearFactor:
+        """The gtsam factor of ``f``: Gaussian, the measured ones with the Cauchy kernel under ``robust: cauchy``;
+        ``key``: node -> gtsam key (default: the graph's own, allocated on first use)."""
         noise = gtsam.noiseModel.Gaussian.Covariance(f.cov)
-        if f.type in _ROBUST and math.isfinite(self.params.cauchy_c):
+        if f.type in _ROBUST and self.params.robust is RobustKernel.CAUCHY and math.isfinite(self.params.cauchy_c):
             noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.params.cauchy_c), noise)
-        keys = [self._key(n) for n in f.nodes]
+        keys = [(key or self._key)(n) for n in f.nodes]
         if f.type is FactorType.PRIOR:
             return gtsam.PriorFactorPose3(keys[0], gtsam.Pose3(f.z), noise)
         return gtsam.BetweenFactorPose3(keys[0], keys[1], gtsam.Pose3(f.z), noise)

@@ -1,10 +1,12 @@
-"""Small SO(3) / SE(3) helpers for the on-board estimators.
+"""SO(3) / SE(3) helpers: the one home of the project's rigid-body geometry.
 
-Pure numpy (and scipy's ``Rotation`` for the logarithm). Rotation matrices map body
-coordinates into the parent frame (``x_parent = R @ x_body``). Euler angles are ZYX
-(yaw about z, then pitch about the new y, then roll about the new x):
+Pure numpy (and scipy's ``Rotation`` for the logarithm and quaternions). Rotation
+matrices map body coordinates into the parent frame (``x_parent = R @ x_body``). Euler
+angles are ZYX (yaw about z, then pitch about the new y, then roll about the new x):
 ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``, the roll/pitch/yaw of a gravity-aligned frame
-with z up.
+with z up (thesis 4.1.2). 6D tangent vectors are ordered [rotation, translation] and
+perturb on the right, ``T_true = T Exp(xi)``. Quaternions are (w, x, y, z), MuJoCo's
+order.
 
 ``so3_exp`` is written with plain floats because the filter calls it once per IMU
 sample; everything else is called at update rate.
@@ -22,6 +24,13 @@ def skew(v) -> np.ndarray:
     """The cross-product matrix ``[v]x`` with ``skew(a) @ b == np.cross(a, b)``."""
     x, y, z = float(v[0]), float(v[1]), float(v[2])
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def vee(S: np.ndarray) -> np.ndarray:
+    """The vector of a cross-product matrix, inverse of :func:`skew`:
+    ``vee(skew(v)) == v``. Reads the lower-triangle entries ``(S[2,1], S[0,2], S[1,0])``
+    and does not check that ``S`` is skew-symmetric."""
+    return np.array([S[2, 1], S[0, 2], S[1, 0]])
 
 
 def so3_exp(phi) -> np.ndarray:
@@ -71,9 +80,26 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return np.array([k * wx, k * wy, k * wz])
 
 
+def rotation_angle(R: np.ndarray) -> float:
+    """The angle of the rotation ``R`` in [0, pi]: the norm of :func:`so3_log`."""
+    return float(np.linalg.norm(so3_log(R)))
+
+
 def rot_z(yaw: float) -> np.ndarray:
+    """Rotation by ``yaw`` about z."""
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def yaw_of(R: np.ndarray) -> float:
+    """Yaw of ``R`` in the ZYX convention, in [-pi, pi]; ``yaw_of(rot_z(y)) == y`` for y
+    in (-pi, pi]. The z rotation that makes a gravity-aligned frame (thesis 4.1.2)."""
+    return math.atan2(R[1, 0], R[0, 0])
+
+
+def wrap_angle(a):
+    """Angle ``a`` (a float or an array) wrapped into [-pi, pi), equal to ``a`` modulo 2 pi."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def rot_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -96,6 +122,13 @@ def euler_zyx(R: np.ndarray) -> tuple[float, float, float]:
     pitch = math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2]))
     yaw = math.atan2(R[1, 0], R[0, 0])
     return roll, pitch, yaw
+
+
+def roll_pitch(R: np.ndarray) -> tuple[float, float]:
+    """Roll and pitch (ZYX Euler) of ``R``, the angles a gravity-aligned frame drops
+    (thesis 4.1.2). Pitch is ``-asin(R[2,0])``, which differs from :func:`euler_zyx`'s
+    ``atan2`` form only in the last bits."""
+    return math.atan2(R[2, 1], R[2, 2]), -math.asin(float(np.clip(R[2, 0], -1.0, 1.0)))
 
 
 def euler_zyx_jacobian(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -129,3 +162,32 @@ def se3_inv(T: np.ndarray) -> np.ndarray:
     Ti[:3, :3] = T[:3, :3].T
     Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
     return Ti
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of ``T = (R, p)`` for tangent order [rotation, translation]:
+    ``T Exp(xi) T^-1 = Exp(Ad_T xi)`` with ``Ad_T = [[R, 0], [[p]x R, R]]``."""
+    R, p = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = Ad[3:, 3:] = R
+    Ad[3:, :3] = skew(p) @ R
+    return Ad
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """6D error ``xi`` with ``T_true = T_est Exp(xi)`` to first order, [rotation (rad),
+    translation (m)], both in the estimated frame: ``[Log(R_est^T R_true),
+    R_est^T (p_true - p_est)]``."""
+    R, t = T_est[:3, :3], T_est[:3, 3]
+    return np.concatenate([so3_log(R.T @ T_true[:3, :3]), R.T @ (T_true[:3, 3] - t)])
+
+
+def quat_to_rot(q_wxyz) -> np.ndarray:
+    """Rotation matrix of a quaternion ``(w, x, y, z)`` (normalised first)."""
+    qw, qx, qy, qz = q_wxyz
+    return Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
+
+
+def yaw_quat(yaw: float) -> np.ndarray:
+    """Quaternion ``(w, x, y, z)`` of :func:`rot_z` ``(yaw)``."""
+    return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])

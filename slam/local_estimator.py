@@ -6,16 +6,32 @@ measurements in the order the robot's computer would process them and reads the
 estimates back. The camera-to-body transform of each capture comes from the caller
 (on the LRU it changes with the pan-tilt head; thesis 7.1), so VO deltas, computed
 between left-camera frames, are turned into body-frame deltas between filter clones.
+
+Two additions make sure the estimator never fails silently:
+
+- Rest detection and zero-velocity updates (:mod:`slam.rest`):
+  a robot standing still (rovers at waypoints, a landed hexacopter) applies
+  :meth:`slam.filter.LocalReferenceFilter.update_zero_velocity` (with the zero angular
+  rate), so the IMU's drift does not accumulate while it rests, also when its stereo
+  odometry sees nothing usable.
+- Health (:mod:`slam.health`): ``ok`` while visual-odometry deltas
+  are applied (or the robot rests), ``degraded`` with a reason when no delta has been
+  applied for a while, ``lost`` when that lasts or the filter's own covariance says the
+  estimate is no longer usable; transitions are kept in :attr:`LocalEstimator.health_history`.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from slam.filter import FilterParams, LocalReferenceFilter
+from slam.health import Health, HealthParams, HealthState
+from slam.lie import se3_inv, so3_log
+from slam.rest import RestDetector, RestParams, RestStats, chi2_3
 from slam.vo import StereoVO, VoResult, delta_in_body_frame
 
 
@@ -47,11 +63,24 @@ class FramePose:
 
 @dataclass
 class VoStats:
+    """What became of the VO results: ``frames = ok + sum(failures)`` and ``ok = applied +
+    rejected``. ``failures`` counts the VO's own failures by :class:`slam.vo.VoFailure`;
+    ``rejections_by_reason`` the deltas the estimator did not apply: ``"gate"`` (the
+    filter's chi-square gate on the NIS, :attr:`LocalReferenceFilter.relative_pose_gate`)
+    and ``"no clone"`` (the keyframe's or the frame's clone is no longer held).
+    ``last_applied_t``: capture time of the latest applied delta (None: none yet)."""
+
     frames: int = 0
     ok: int = 0
     applied: int = 0
     rejected: int = 0
     failures: dict[str, int] = field(default_factory=dict)
+    rejections_by_reason: dict[str, int] = field(default_factory=dict)
+    last_applied_t: float | None = None
+
+    def reject(self, reason: str) -> None:
+        self.rejected += 1
+        self.rejections_by_reason[reason] = self.rejections_by_reason.get(reason, 0) + 1
 
 
 class LocalEstimator:
@@ -63,6 +92,11 @@ class LocalEstimator:
     the first local frame is the start pose's x, y, z and yaw. A frame switch is
     triggered by :meth:`frame_switch` (the mapping's submap partition) or, with
     ``frame_switch_distance`` set, after that distance travelled in the current frame.
+
+    While the robot rests (``rest_params``, :class:`RestParams`) the filter gets
+    zero-velocity updates; :attr:`health` (``health_params``, :class:`HealthParams`) says
+    whether the estimate is aided, with its transitions in :attr:`health_history` as
+    ``(t, state, reason)``; :attr:`vo_stats` and :attr:`rest_stats` count what happened.
     """
 
     def __init__(
@@ -72,6 +106,8 @@ class LocalEstimator:
         init_time: float,
         rest_window: float,
         frame_switch_distance: float | None = None,
+        rest_params: RestParams | None = None,
+        health_params: HealthParams | None = None,
     ):
         if rest_window <= 0 or rest_window > init_time + 1e-9:
             raise EstimatorException(f"rest window {rest_window} s must be > 0 and fit before the start at {init_time} s")
@@ -93,6 +129,26 @@ class LocalEstimator:
         self._propagated = False  # updates need one IMU sample after the start
         self.last_frame: FramePose | None = None  # set by on_vo
         self.frame_origins: list[np.ndarray] = [np.eye(4)]  # local frame k in the first one (switches chained)
+        # rest detection and zero-velocity updates
+        self.rest_params = rest_params = rest_params or RestParams()
+        self.rest_stats = RestStats()
+        self._rest_detector = RestDetector(rest_params, params.accel_noise_density, params.gyro_noise_density, params.gravity)
+        self._rest_since: float | None = None  # start of the current run of quiet, unvetoed windows
+        self._run: deque[tuple[float, np.ndarray]] = deque(  # (duration, mean accelerometer) of the run's windows
+            maxlen=max(2, round((rest_params.min_rest_s + rest_params.drift_reference_s) / rest_params.window_s)))
+        self._at_rest = False
+        self._commanded_motion: bool | None = None
+        self._wheel_sum = np.zeros(3)  # wheel odometry (v_x, v_y, yaw rate) since the last window
+        self._wheel_n = 0
+        self._capture_t: dict[int, float] = {}
+        self._vo_prev: tuple[int, float, int, np.ndarray, np.ndarray] | None = None  # (frame, t, keyframe, T_kf_frame, cov) body
+        self._vo_moving_t: float | None = None  # capture time of the latest VO step that showed motion
+        # health
+        self.health_params = health_params or HealthParams()
+        self.health = Health(HealthState.OK, "", init_time)
+        self.health_history: list[tuple[float, str, str]] = []
+        self._last_zupt_t = -math.inf
+        self._vo_trouble: tuple[str, str] | None = None  # the latest VO outcome since the last applied delta
 
     @property
     def initialised(self) -> bool:
@@ -119,6 +175,8 @@ class LocalEstimator:
                     rest_duration_s=self.rest_window,
                 )
                 self._last_p = np.zeros(3)
+                self.health = Health(HealthState.OK, "", self.filter.t)
+                self.health_history.append((self.filter.t, HealthState.OK.value, ""))
             return
         self.filter.propagate(t, accel, gyro)
         self._propagated = True
@@ -127,6 +185,8 @@ class LocalEstimator:
         self._last_p = p
         if self.frame_switch_distance is not None and self._distance >= self.frame_switch_distance:
             self.frame_switch()
+        if self._rest_step(t, accel, gyro):
+            self._update_health(t)
 
     def _rest_gyro_bias_std(self) -> float:
         """Error of the resting gyro mean as a bias estimate: white noise averaged over the
@@ -140,6 +200,8 @@ class LocalEstimator:
         if not self._propagated:
             return
         vx, vy, yaw_rate = v_body
+        self._wheel_sum += (vx, vy, yaw_rate)
+        self._wheel_n += 1
         cov = np.diag([speed_std**2, speed_std**2, vz_std**2])
         self.filter.update_body_velocity(np.array([vx, vy, 0.0]), cov, yaw_rate=yaw_rate, yaw_rate_var=yaw_rate_std**2)
 
@@ -150,6 +212,7 @@ class LocalEstimator:
             return False
         self.filter.clone(frame_id, t)
         self._T_body_cam[frame_id] = np.asarray(T_body_cam, float)
+        self._capture_t[frame_id] = float(t)
         self._pending.add(frame_id)
         return True
 
@@ -175,11 +238,19 @@ class LocalEstimator:
                 cov_b = 0.5 * (cov_b + cov_b.T)
                 applied = self.filter.update_relative_pose(kf, result.frame_id, T_b, cov_b)
                 if applied > self.filter.relative_pose_gate:
-                    stats.rejected += 1
+                    stats.reject("gate")
+                    self._vo_trouble = ("vo rejected", "gate")
                 else:
                     stats.applied += 1
+                    stats.last_applied_t = result.t if stats.last_applied_t is None else max(stats.last_applied_t, result.t)
+                    self._vo_trouble = None
+                    self._note_vo_motion(result, T_b, cov_b)
+            else:
+                stats.reject("no clone")
+                self._vo_trouble = ("vo rejected", "no clone")
         else:
             stats.failures[str(result.reason)] = stats.failures.get(str(result.reason), 0) + 1
+            self._vo_trouble = ("vo lost", str(result.reason))
         if result.frame_id in self.filter.clone_ids:
             self.last_frame = FramePose(
                 result.frame_id, result.t, self.filter.frame_index, self.filter.clone_pose(result.frame_id), self._T_body_cam[result.frame_id]
@@ -187,6 +258,7 @@ class LocalEstimator:
         self._keyframes = tuple(result.keyframe_history)
         self._pending.discard(result.frame_id)
         self._release_clones()
+        self._update_health(self.filter.t)
         return applied
 
     def abandon(self, frame_id: int) -> None:
@@ -202,6 +274,7 @@ class LocalEstimator:
 
     def _forget(self, frame_id: int) -> None:
         del self._T_body_cam[frame_id]
+        self._capture_t.pop(frame_id, None)
         if frame_id in self.filter.clone_ids:
             self.filter.drop_clone(frame_id)
 
@@ -236,3 +309,221 @@ class LocalEstimator:
         self._distance = 0.0
         self._last_p = self.filter.pose()[:3, 3]
         return switch
+
+    # ------------------------------------------------------------------ rest and zero velocity
+
+    def on_motion_command(self, moving: bool | None) -> None:
+        """What the robot's own controller knows: True while it commands motion (rotors
+        spinning, wheels driven), False while it commands standstill, None unknown. True
+        vetoes rest detection (a quiet IMU at constant velocity is not rest); False does not
+        replace the IMU test (a robot can slide or be pushed)."""
+        self._commanded_motion = None if moving is None else bool(moving)
+
+    @property
+    def at_rest(self) -> bool:
+        """The latest window was taken as rest (a zero-velocity update was due)."""
+        return self._at_rest
+
+    def _note_vo_motion(self, result: VoResult, T_b: np.ndarray, cov_b: np.ndarray) -> None:
+        """Body motion between consecutive VO frames of an applied delta ``T_b`` (keyframe
+        to frame, body frames, covariance ``cov_b``): from the previous frame if it used the
+        same keyframe (covariance: the sum of both, an upper bound as they share the
+        keyframe), else from the keyframe's capture. A translation or rotation faster than
+        ``vo_max_*`` and significant against its covariance (chi-square, 3 dof, at
+        ``quiet_probability``) marks motion at the frame's capture."""
+        kf, t = result.keyframe_id, result.t
+        prev = self._vo_prev
+        if prev is not None and prev[2] == kf and prev[0] != result.frame_id:
+            T_step, cov, dt = se3_inv(prev[3]) @ T_b, prev[4] + cov_b, t - prev[1]
+        else:
+            T_step, cov, dt = T_b, cov_b, t - self._capture_t.get(kf, math.nan)
+        self._vo_prev = (result.frame_id, t, kf, T_b, cov_b)
+        if not dt > 0:
+            return
+        rp = self.rest_params
+        gate = chi2_3(rp.quiet_probability)
+        p, r = T_step[:3, 3], so3_log(T_step[:3, :3])
+        moving_p = np.linalg.norm(p) > rp.vo_max_speed_mps * dt and p @ np.linalg.solve(cov[3:6, 3:6], p) > gate
+        moving_r = np.linalg.norm(r) > rp.vo_max_rate_rps * dt and r @ np.linalg.solve(cov[0:3, 0:3], r) > gate
+        if moving_p or moving_r:
+            self._vo_moving_t = t if self._vo_moving_t is None else max(self._vo_moving_t, t)
+
+    def _motion_veto(self, t: float) -> str | None:
+        """Why a quiet window at ``t`` is not rest: ``"command"``, ``"wheels"``, ``"vo"``, or None."""
+        rp = self.rest_params
+        if self._commanded_motion:
+            return "command"
+        if self._wheel_n:
+            vx, vy, yaw_rate = self._wheel_sum / self._wheel_n
+            if math.hypot(vx, vy) > rp.wheel_max_speed_mps or abs(yaw_rate) > rp.wheel_max_yaw_rate_rps:
+                return "wheels"
+        if self._vo_moving_t is not None and t - self._vo_moving_t <= rp.vo_motion_hold_s:
+            return "vo"
+        return None
+
+    def _acceleration_veto(self) -> str | None:
+        """``"acceleration"`` if the mean accelerometer of the run's latest windows (up to
+        ``min_rest_s``, at most half the run) differs from that of its earlier ones by more
+        than their white noise allows (chi-square, 3 dof): a smooth acceleration that no
+        single window shows (:class:`RestParams`)."""
+        rp = self.rest_params
+        run = self._run
+        if len(run) < 2:
+            return None
+        k = min(max(1, round(rp.min_rest_s / rp.window_s)), len(run) // 2)
+        d = np.array([x for x, _ in run])
+        f = np.array([x for _, x in run])
+        t_new, t_old = float(d[-k:].sum()), float(d[:-k].sum())
+        change = d[-k:] @ f[-k:] / t_new - d[:-k] @ f[:-k] / t_old
+        var = (rp.noise_scale * self.params.accel_noise_density) ** 2 * (1.0 / t_new + 1.0 / t_old)
+        return "acceleration" if float(change @ change) / var > chi2_3(rp.quiet_probability) else None
+
+    def _rest_step(self, t: float, accel: np.ndarray, gyro: np.ndarray) -> bool:
+        """Feed the rest detector; at the end of a window decide rest and apply the
+        zero-velocity update (with the window's mean gyro for the zero rate). Returns
+        True when a window ended."""
+        f = self.filter
+        window = self._rest_detector.add(t, np.asarray(accel, float), np.asarray(gyro, float), f.accel_bias, f.gyro_bias)
+        if window is None:
+            return False
+        rp, stats = self.rest_params, self.rest_stats
+        stats.windows += 1
+        veto = None
+        if window.quiet:
+            stats.quiet += 1
+            self._run.append((window.t_end - window.t_start, window.accel_mean))
+            veto = self._motion_veto(window.t_end) or self._acceleration_veto()
+            if veto is not None:
+                stats.vetoed[veto] = stats.vetoed.get(veto, 0) + 1
+        self._wheel_sum[:] = 0.0
+        self._wheel_n = 0
+        self._at_rest = False
+        if not window.quiet or veto is not None:
+            self._rest_since = None
+            self._run.clear()
+            if veto == "acceleration":  # this window starts the next run
+                self._run.append((window.t_end - window.t_start, window.accel_mean))
+            return True
+        if self._rest_since is None:
+            self._rest_since = window.t_start
+        if window.t_end - self._rest_since < rp.min_rest_s - 1e-9:
+            return True
+        if rp.zero_velocity:
+            rate = rp.angular_rate_std_rps is not None
+            nis = f.update_zero_velocity(
+                rp.velocity_std_mps,
+                rp.angular_rate_std_rps,
+                window.gyro_mean if rate else None,
+                window.gyro_mean_var if rate else None,
+                rp.gate_probability,
+            )
+            if rp.gate_probability is not None and nis > f.zero_velocity_gate(rp.gate_probability):
+                stats.rejected += 1
+                return True
+            stats.applied += 1
+            self._last_zupt_t = window.t_end
+        self._at_rest = True
+        stats.rest_s += window.t_end - window.t_start
+        if stats.intervals and abs(stats.intervals[-1][1] - window.t_start) < 1e-9:
+            stats.intervals[-1] = (stats.intervals[-1][0], window.t_end)
+        else:
+            stats.intervals.append((window.t_start, window.t_end))
+        return True
+
+    # ------------------------------------------------------------------ health
+
+    @property
+    def time_since_vo(self) -> float:
+        """Seconds from the capture of the latest applied VO delta (or the filter's start)
+        to the filter's time."""
+        last = self.vo_stats.last_applied_t
+        return self.filter.t - (self.init_time if last is None else last) if self.filter is not None else 0.0
+
+    def _vo_reason(self) -> tuple[str, str]:
+        if self.vo is None:
+            return "no vo", ""
+        return self._vo_trouble or ("vo lost", "no results")
+
+    def _update_health(self, t: float) -> None:
+        """Re-evaluate :attr:`health` at ``t`` (after each rest window and VO result)."""
+        hp, f = self.health_params, self.filter
+        last_vo = self.vo_stats.last_applied_t
+        aided = max(self.init_time if last_vo is None else last_vo, self._last_zupt_t)
+        unaided = t - aided
+        P = f.covariance()
+        bound = None
+        if hp.max_position_std_m is not None:
+            std = math.sqrt(max(np.linalg.eigvalsh(P[0:3, 0:3])[-1], 0.0))
+            if std > hp.max_position_std_m:
+                bound = f"position std {std:.2f} m > {hp.max_position_std_m} m"
+        if bound is None and hp.max_velocity_std_mps is not None:
+            std = math.sqrt(max(np.linalg.eigvalsh(P[3:6, 3:6])[-1], 0.0))
+            if std > hp.max_velocity_std_mps:
+                bound = f"velocity std {std:.2f} m/s > {hp.max_velocity_std_mps} m/s"
+        if unaided > hp.vo_timeout_s:
+            reason, detail = self._vo_reason()
+            if unaided > hp.vo_timeout_s + hp.lost_after_s:
+                state = HealthState.LOST
+            elif bound is not None:
+                state, detail = HealthState.LOST, bound
+            else:
+                state = HealthState.DEGRADED
+        elif bound is not None:
+            state, reason, detail = HealthState.LOST, "uncertain", bound
+        else:
+            state, reason, detail = HealthState.OK, "", ""
+        h = self.health
+        if state != h.state or reason != h.reason:
+            self.health = Health(state, reason, t if state != h.state else h.since, detail)
+            self.health_history.append((t, state.value, reason))
+        elif detail != h.detail:
+            self.health = replace(h, detail=detail)
+
+    # ------------------------------------------------------------------ reports
+
+    def health_report(self, t_end: float | None = None) -> dict:
+        """JSON-ready health summary: the current state, its transitions and the time
+        spent in each state up to ``t_end`` (default: the filter's time)."""
+        h = self.health
+        t_end = (self.filter.t if self.filter is not None else self.init_time) if t_end is None else t_end
+        time_in = {s.value: 0.0 for s in HealthState}
+        hist = self.health_history
+        for (t0, state, _), t1 in zip(hist, [t for t, _, _ in hist[1:]] + [t_end]):
+            time_in[state] += max(t1 - t0, 0.0)
+        return {
+            "state": h.state.value,
+            "reason": h.reason,
+            "detail": h.detail,
+            "since": h.since,
+            "time_since_vo_s": self.time_since_vo,
+            "time_s": time_in,
+            "transitions": [[t, state, reason] for t, state, reason in hist],
+        }
+
+    def rest_report(self) -> dict:
+        """JSON-ready summary of rest detection and zero-velocity updates."""
+        r = self.rest_stats
+        return {
+            "enabled": self.rest_params.zero_velocity,
+            "windows": r.windows,
+            "quiet": r.quiet,
+            "vetoed": dict(r.vetoed),
+            "applied": r.applied,
+            "rejected_by_gate": r.rejected,
+            "rest_s": r.rest_s,
+            "intervals": [[a, b] for a, b in r.intervals],
+        }
+
+    def vo_report(self) -> dict:
+        """JSON-ready :class:`VoStats` with the time since the latest applied delta."""
+        v = self.vo_stats
+        return {
+            "frames": v.frames,
+            "ok": v.ok,
+            "applied": v.applied,
+            "rejected": v.rejected,
+            "rejections_by_reason": dict(v.rejections_by_reason),
+            "failures": dict(v.failures),
+            "last_applied_t": v.last_applied_t,
+            "time_since_last_applied_s": self.time_since_vo,
+        }

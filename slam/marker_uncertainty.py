@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import generic_filter
 
-from slam.lie import so3_log
+from slam import lie
 from slam.markers import MarkerDetection, MarkerDetector, MarkerException, UncertaintyModel
 
 MAX_ROTATION_SIGMA_RAD = math.radians(75.0)  # thesis 8.1.3: detections above are rejected
@@ -45,9 +45,9 @@ def corner_perturbations(corners: np.ndarray, dp_px: float) -> np.ndarray:
 
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
-    """|xi| (6,) for ``T_true = T_est Exp(xi)``, [rotation (rad), translation (m)], first order."""
-    R = T_est[:3, :3]
-    return np.abs(np.concatenate([so3_log(R.T @ T_true[:3, :3]), R.T @ (T_true[:3, 3] - T_est[:3, 3])]))
+    """|xi| (6,) for ``T_true = T_est Exp(xi)``, [rotation (rad), translation (m)], first
+    order: the magnitudes of :func:`slam.lie.pose_error`."""
+    return np.abs(lie.pose_error(T_est, T_true))
 
 
 def _mean_pose(poses: list[np.ndarray]) -> np.ndarray:

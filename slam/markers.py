@@ -19,7 +19,7 @@ views up to 50 deg off the tag normal: detected 40/40 at 2 m, 39/40 at 3 m, 31/4
 4 m (sides 8-13 px); translation error median 0.07 / 0.17 / 0.95 cm, rotation error
 median 0.06 / 0.28 / 0.81 deg, no mirrored pose chosen.
 
-Conventions (design notes §3):
+Conventions (as everywhere in ``slam``):
 
 - camera frame as OpenCV: x right, y down, z forward; pixel centres at integer
   coordinates (the convention of ``K``);
@@ -43,8 +43,7 @@ from enum import StrEnum
 import cv2
 import numpy as np
 
-from slam.lie import se3, se3_inv
-from slam.vo import adjoint
+from slam.lie import adjoint, se3, se3_inv
 
 __all__ = [
     "SIGMA_CONSTANT",
@@ -53,7 +52,6 @@ __all__ = [
     "MarkerDetector",
     "MarkerException",
     "UncertaintyModel",
-    "adjoint",
     "detection_covariance",
     "refine_corners",
     "relative_pose",

@@ -34,10 +34,10 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 
-from slam.registration import IcpResult, icp, off_line_count, ransac, roll_pitch
+from slam.lie import roll_pitch
+from slam.registration import IcpResult, icp, off_line_count, ransac
 from slam.submap import Submap, voxel_filter
 
 SubmapKey = tuple[str, int]  # (robot, submap index)
@@ -176,6 +176,8 @@ def compute_features(kp: Keypoints, params: MatcherParams) -> None:
     (6.1.2 feature generation; computed once per submap, when first needed)."""
     if kp.descriptors is not None:
         return
+    import open3d as o3d  # here, not at the top: it takes about a second, and the scenario schema imports MatcherParams
+
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kp.cloud))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.normal_radius_m, max_nn=40))
     pcd.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))

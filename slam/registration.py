@@ -10,7 +10,7 @@ submap origins are gravity-aligned, so a 4D transform is a rotation about z.
 Written here rather than taken from Open3D: Open3D's RANSAC and ICP estimate full
 6D transforms and cannot hold roll and pitch at zero, which is the point of 6.1.2;
 the 6D variants use the same code with all six degrees of freedom, so the 4D/6D
-comparison of 8.1.2 differs only in the constraint. Only numpy and scipy.
+comparison of 8.1.2 differs only in the constraint. Only numpy, scipy and slam/lie.py.
 """
 
 from __future__ import annotations
@@ -21,31 +21,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from slam.lie import rot_z, se3, skew
+
 Z = np.array([0.0, 0.0, 1.0])
 
 
 class RegistrationException(ValueError):
     """Degenerate input to a solver."""
-
-
-def transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
-
-
-def rot_z(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def yaw_of(R: np.ndarray) -> float:
-    return math.atan2(R[1, 0], R[0, 0])
-
-
-def roll_pitch(R: np.ndarray) -> tuple[float, float]:
-    """Roll and pitch (ZYX Euler) of a rotation."""
-    return math.atan2(R[2, 1], R[2, 2]), -math.asin(float(np.clip(R[2, 0], -1.0, 1.0)))
 
 
 def two_point_4d(p: np.ndarray, q: np.ndarray, p_b: np.ndarray, q_b: np.ndarray) -> np.ndarray | None:
@@ -63,7 +45,7 @@ def two_point_4d(p: np.ndarray, q: np.ndarray, p_b: np.ndarray, q_b: np.ndarray)
         d = d / n
         frames.append(np.column_stack([d, np.cross(d, Z), Z]))
     R = frames[0] @ frames[1].T
-    return transform(R, (p + q) / 2 - R @ ((p_b + q_b) / 2))
+    return se3(R, (p + q) / 2 - R @ ((p_b + q_b) / 2))
 
 
 def fit_4d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -76,7 +58,7 @@ def fit_4d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if abs(s) + abs(c) < 1e-12:
         raise RegistrationException("points have no horizontal extent: yaw undetermined")
     R = rot_z(math.atan2(s, c))
-    return transform(R, ca - R @ cb)
+    return se3(R, ca - R @ cb)
 
 
 def fit_6d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -89,7 +71,7 @@ def fit_6d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         raise RegistrationException("points are collinear: rotation undetermined")
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
     R = Vt.T @ D @ U.T
-    return transform(R, ca - R @ cb)
+    return se3(R, ca - R @ cb)
 
 
 @dataclass(frozen=True)
@@ -242,13 +224,13 @@ def icp(
         except np.linalg.LinAlgError:
             return None
         if dof == 4:
-            dT = transform(rot_z(delta[3]), delta[:3])
+            dT = se3(rot_z(delta[3]), delta[:3])
         else:
             w_ = delta[3:]
             angle = np.linalg.norm(w_)
-            K = np.array([[0, -w_[2], w_[1]], [w_[2], 0, -w_[0]], [-w_[1], w_[0], 0]])
+            K = skew(w_)  # Rodrigues in matrix form; lie.so3_exp agrees to the last bit only
             dR = np.eye(3) if angle < 1e-12 else np.eye(3) + math.sin(angle) / angle * K + (1 - math.cos(angle)) / angle**2 * K @ K
-            dT = transform(dR, delta[:3])
+            dT = se3(dR, delta[:3])
         T = dT @ T
         if np.linalg.norm(delta) < tolerance:
             converged = True

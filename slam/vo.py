@@ -60,6 +60,7 @@ from enum import StrEnum
 import cv2
 import numpy as np
 
+from slam.lie import adjoint
 from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, max_depth_for_error, triangulate
 
 
@@ -174,41 +175,10 @@ class _Measurement:
 
 
 # --------------------------------------------------------------------------- geometry helpers
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices of vectors (..., 3) -> (..., 3, 3)."""
-    v = np.asarray(v, dtype=float)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def so3_exp(r: np.ndarray) -> np.ndarray:
-    return cv2.Rodrigues(np.asarray(r, dtype=float).reshape(3, 1))[0]
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    return cv2.Rodrigues(np.asarray(R, dtype=float))[0].ravel()
-
-
-def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
-    """6D error ``xi`` with ``T_true = T_est Exp(xi)`` to first order, in the tangent order
-    of :class:`VoResult` ([rotation, translation], both in the estimated frame)."""
-    R, t = T_est[:3, :3], T_est[:3, 3]
-    return np.concatenate([so3_log(R.T @ T_true[:3, :3]), R.T @ (T_true[:3, 3] - t)])
-
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """6x6 adjoint of ``T = (R, p)`` for tangent order [rotation, translation]:
-    ``T Exp(xi) T^-1 = Exp(Ad_T xi)`` with ``Ad_T = [[R, 0], [[p]x R, R]]``."""
-    R, p = T[:3, :3], T[:3, 3]
-    Ad = np.zeros((6, 6))
-    Ad[:3, :3] = Ad[3:, 3:] = R
-    Ad[3:, :3] = skew(p) @ R
-    return Ad
+# Rigid-body geometry lives in slam/lie.py. The rotation-vector conversions below stay
+# OpenCV's ``cv2.Rodrigues`` (the convention of solvePnP's ``rvec``): it agrees with
+# ``lie.so3_exp`` only to the last bit, and its logarithm returns zero below about
+# 1e-5 rad, so switching to slam/lie.py would change the refined poses in the last bits.
 
 
 def delta_in_body_frame(
@@ -301,7 +271,7 @@ def refine_pose(
             xi = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             return T, H, r, W
-        T[:3, :3] = R @ so3_exp(xi[:3])
+        T[:3, :3] = R @ cv2.Rodrigues(xi[:3].reshape(3, 1))[0]
         T[:3, 3] = t + R @ xi[3:]
         if np.linalg.norm(xi) < 1e-10:
             iterations = it + 1  # converged: one more pass for H at the solution
@@ -417,7 +387,7 @@ class StereoVO:
         """Keyframe policy: may ``kf`` stay the reference after measurement ``m``?"""
         p = self.params
         n = len(m.inlier_uv)
-        angle = np.linalg.norm(so3_log(m.T[:3, :3]))
+        angle = np.linalg.norm(cv2.Rodrigues(m.T[:3, :3])[0])
         return (n >= p.keyframe_min_inliers and n >= p.keyframe_min_inlier_share * len(kf.X)
                 and np.linalg.norm(m.T[:3, 3]) <= p.keyframe_max_translation_m
                 and angle <= math.radians(p.keyframe_max_rotation_deg))
@@ -541,7 +511,7 @@ class StereoVO:
             confidence=p.ransac_confidence, flags=cv2.SOLVEPNP_AP3P)
         if not found or inl is None or len(inl) < p.min_inliers:
             return _Measurement(False, VoFailure.TOO_FEW_INLIERS, matches=n)
-        R_ck = so3_exp(rvec.ravel())  # keyframe -> camera
+        R_ck = cv2.Rodrigues(rvec.reshape(3, 1))[0]  # keyframe -> camera
         T = np.eye(4)
         T[:3, :3] = R_ck.T
         T[:3, 3] = -R_ck.T @ tvec.ravel()

@@ -3,7 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from sim.evaluation.trajectory import gravity_aligned, in_start_frame, trajectory_metrics
+from sim.evaluation.statistics import StatisticsType, statistics
+from sim.evaluation.trajectory import Trajectory, gravity_aligned, in_start_frame, path_length, trajectory_metrics, truth_since, write_tum
 
 
 def circle(n=200, radius=5.0, z=0.0):
@@ -33,12 +34,14 @@ def test_constant_offset_is_the_unaligned_ate_and_vanishes_when_aligned():
     t, gt = circle()
     est = gt.copy()
     est[:, :3, 3] += [0.3, -0.4, 0.0]  # 0.5 m off everywhere
-    m = trajectory_metrics(t, est, t, gt)
+    m, errors = trajectory_metrics(Trajectory(t, est), Trajectory(t, gt))
     assert m["ate_m"]["rmse"] == pytest.approx(0.5, abs=1e-9)
     assert m["ate_aligned_m"]["rmse"] < 1e-6
     assert m["final_error_m"] == pytest.approx(0.5)
     assert m["distance_m"] == pytest.approx(5 * math.pi, rel=1e-3)
     assert m["final_error_percent_of_distance"] == pytest.approx(50 / (5 * math.pi), rel=1e-3)
+    assert np.allclose(errors.position_m, 0.5) and np.array_equal(errors.t, t)
+    assert "error_over_time" not in m  # the series travel apart from the metrics
 
 
 def test_yaw_drift_shows_in_yaw_error_and_rpe():
@@ -50,7 +53,31 @@ def test_yaw_drift_shows_in_yaw_error_and_rpe():
         R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
         est[i, :3, :3] = R @ gt[i, :3, :3]
         est[i, :3, 3] = R @ gt[i, :3, 3]
-    m = trajectory_metrics(t, est, t, gt)
+    m, errors = trajectory_metrics(Trajectory(t, est), Trajectory(t, gt))
     assert m["yaw_error_deg"]["final"] == pytest.approx(10, abs=1e-6)
     assert m["rpe_per_m"]["mean"] > 0.0
     assert m["ate_m"]["max"] > m["ate_aligned_m"]["max"]
+    assert errors.yaw_deg[-1] == pytest.approx(10, abs=1e-6)
+
+
+def test_statistics_are_named_by_their_type_in_the_order_asked():
+    values = [3.0, 1.0, 2.0, 4.0]
+    s = statistics(values, (StatisticsType.RMSE, StatisticsType.MEDIAN, StatisticsType.P90, StatisticsType.FINAL))
+    assert list(s) == ["rmse", "median", "p90", "final"]
+    assert s["rmse"] == pytest.approx(math.sqrt(7.5)) and s["median"] == 2.5 and s["p90"] == pytest.approx(3.7) and s["final"] == 4.0
+    assert statistics([], tuple(StatisticsType)) == {}
+
+
+def test_truth_since_starts_in_the_gravity_aligned_first_pose(tmp_path):
+    t, poses = circle(n=50)
+    poses[:, :3, 3] += [10.0, -2.0, 1.0]
+    rows = [np.concatenate([T[:3, 3], [math.cos(a / 2), 0.0, 0.0, math.sin(a / 2)]]) for T, a in zip(poses, t / 60 * math.pi)]
+    world = Trajectory.from_pose_rows(t, rows)
+    assert np.allclose(world.T, poses) and path_length(world) == pytest.approx(path_length(Trajectory(t, poses)))
+    start = truth_since(world, t[10])
+    assert len(start.trajectory) == 40 and start.trajectory.t[0] == t[10]
+    assert np.allclose(start.trajectory.T[0], np.eye(4)) and np.allclose(start.T_world_start, poses[10])
+    assert np.allclose(world.at(t[20] - 1e-7), poses[20]) and np.allclose(world.at(1e9), poses[-1])
+    write_tum(tmp_path / "gt.tum", world)  # the logged quaternions, as they came
+    first = (tmp_path / "gt.tum").read_text().splitlines()[1].split()
+    assert [float(v) for v in first[4:]] == pytest.approx([*rows[1][4:], rows[1][3]], abs=1e-8)

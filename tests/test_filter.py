@@ -13,7 +13,7 @@ import pytest
 from scipy.stats import chi2
 
 from slam.filter import FilterException, FilterParams, LocalReferenceFilter, switch_pose3_covariance
-from slam.lie import euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_zyx, se3, se3_inv, skew, so3_exp, so3_exp_batch, so3_log
+from slam.lie import euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_zyx, se3, se3_inv, skew, so3_exp, so3_exp_batch, so3_log, wrap_angle
 
 G = 9.81
 GVEC = np.array([0.0, 0.0, -G])
@@ -156,6 +156,7 @@ def run(
     wheel_every: int = 0,
     wheel_std: float = 0.02,
     zupt_every: int = 0,
+    zupt_mean: bool = False,
     outlier_images=(),
     swap_images=(),
     switch_at=(),
@@ -166,7 +167,8 @@ def run(
     """Feed a filter: IMU every sample; at every ``vo_every``-th sample a clone and a delta
     to the current keyframe (every ``kf_every``-th image is a keyframe) arriving ``delay``
     samples later (pairs in ``swap_images`` arrive in reverse order); wheel velocities
-    (body frame, with v_z = 0 constraint) and zero-velocity updates. Returns the filter,
+    (body frame, with v_z = 0 constraint) and zero-velocity updates (``zupt_mean``: with the
+    mean gyro since the last one and a gate, as slam.local_estimator applies them). Returns the filter,
     the NIS per image, the frame switches, and ``checkpoint(k, filter)`` results."""
     rng = np.random.default_rng(rng_seed)
     f_meas = truth.f if imu is None else imu.f
@@ -213,7 +215,12 @@ def run(
             yaw_rate = truth.w[k][2] + rng.normal(0, 0.01)
             filt.update_body_velocity(vb, np.diag([wheel_std**2, wheel_std**2, 0.01**2]), yaw_rate, 0.01**2)
         if zupt_every and k % zupt_every == 0 and k > 0:
-            filt.update_zero_velocity(0.005, angular_rate_std=1e-4)
+            if zupt_mean:
+                w = w_meas[k - zupt_every + 1 : k + 1].mean(axis=0)
+                var = params.gyro_noise_density**2 / (zupt_every * DT)
+                filt.update_zero_velocity(0.005, 1e-4, gyro_mean=w, gyro_mean_var=var, gate_probability=0.999)
+            else:
+                filt.update_zero_velocity(0.005, angular_rate_std=1e-4)
         if k in switch_at:
             switches.append(filt.frame_switch())
             true_frame = se3(rot_zyx(0.0, 0.0, euler_zyx(truth.R[k])[2]), truth.p[k])
@@ -283,7 +290,7 @@ def _expm(K):
 def _wrap_rotvec(phi):
     a = np.linalg.norm(phi)
     k = phi / a
-    a = (a + math.pi) % (2 * math.pi) - math.pi
+    a = wrap_angle(a)
     return k * a if a >= 0 else -k * -a
 
 
@@ -572,6 +579,51 @@ def test_at_rest_roll_pitch_converge_yaw_and_position_do_not():
     # zero-rate updates make the gyro bias observable
     sig_bw = np.sqrt(np.diag(P[12:15, 12:15]))
     assert np.all(np.abs(f.gyro_bias - imu.bw[-1]) < 3 * sig_bw) and np.all(sig_bw < params.initial_gyro_bias_std / 10)
+
+
+def _resting(duration: float, roll: float = 0.08, pitch: float = -0.05) -> Truth:
+    n = round(duration * RATE)
+    R = rot_zyx(roll, pitch, 0.0)
+    z = np.zeros((n, 3))
+    return Truth(np.arange(n) * DT, z, z.copy(), np.repeat(R[None], n, 0), np.tile(R.T @ -GVEC, (n, 1)), z.copy())
+
+
+def test_zero_velocity_gate_window_mean_gyro_and_replay():
+    """The gate acts on the velocity part (3 dof): a zero velocity that the filter's
+    velocity contradicts is rejected and leaves the state unchanged. The window-mean
+    gyro form observes the gyro bias with all the samples (the latest sample alone uses
+    a twentieth of them): at rest the yaw-rate bias, which nothing else observes, is known
+    2.5x better after 10 s. Both are replayed exactly by the delay compensation."""
+    tr = constant_turn(3.0)  # 0.6 m/s at the end
+    params = replace(PARAMS, initial_roll_pitch_std=math.radians(0.05), initial_gyro_bias_std=math.radians(0.01))
+    imu = noisy_imu(tr, params, np.random.default_rng(11))
+    f = LocalReferenceFilter(params, 0.0, accel_at_rest=resting_accel(0.0, 0.0))
+    for k in range(len(tr.t)):
+        f.propagate(tr.t[k], imu.f[k], imu.w[k])
+    v, P = f.velocity(), f.full_covariance()
+    nis = f.update_zero_velocity(0.005, 1e-4, gyro_mean=imu.w[-20:].mean(axis=0), gyro_mean_var=1e-8, gate_probability=0.999)
+    assert nis > f.zero_velocity_gate(0.999) == pytest.approx(chi2.ppf(0.999, 3))
+    assert np.array_equal(f.velocity(), v) and np.array_equal(f.full_covariance(), P)
+    assert f.update_zero_velocity(0.005) == pytest.approx(nis, rel=1e-6)  # ungated: the same NIS, applied
+    assert np.linalg.norm(f.velocity()) < 0.02
+    with pytest.raises(FilterException, match="go together"):
+        f.update_zero_velocity(0.005, 1e-4, gyro_mean=np.zeros(3))
+    with pytest.raises(FilterException, match="needs angular_rate_std"):
+        f.update_zero_velocity(0.005, gyro_mean=np.zeros(3), gyro_mean_var=1e-8)
+
+    rest = _resting(10.0)
+    imu = noisy_imu(rest, PARAMS, np.random.default_rng(12))
+    mean, *_ = run(rest, imu, vo_every=0, zupt_every=20, zupt_mean=True)
+    last, *_ = run(rest, imu, vo_every=0, zupt_every=20)
+    sig_mean = np.sqrt(np.diag(mean.covariance()[12:15, 12:15]))
+    sig_last = np.sqrt(np.diag(last.covariance()[12:15, 12:15]))
+    assert sig_mean[2] < 0.4 * sig_last[2] and np.all(sig_mean[:2] <= sig_last[:2])  # z: nothing else observes it at rest
+    assert np.all(np.abs(mean.gyro_bias - imu.bw[-1]) < 4 * sig_mean)
+    a, *_ = run(rest, imu, zupt_every=20, zupt_mean=True, delay=0, vo_until=9.0)
+    b, *_ = run(rest, imu, zupt_every=20, zupt_mean=True, delay=50, vo_until=9.0)
+    np.testing.assert_allclose(b.pose(), a.pose(), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(b.gyro_bias, a.gyro_bias, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.full_covariance(), a.full_covariance(), rtol=1e-8, atol=1e-16)
 
 
 def test_wheel_velocity_updates_bound_velocity_drift():

@@ -10,6 +10,7 @@ import pytest
 from test_submap import CALIB, camera_pose, integrate, render
 
 from slam.globalmap import GlobalMap, GlobalMapException
+from slam.lie import rot_z, se3
 from slam.submap import Submap, SubmapBuilder, SubmapParams
 from slam.voxels import VoxelState
 
@@ -18,10 +19,7 @@ BOX = (np.array([1.213, -0.187, 0.0]), np.array([1.613, 0.213, 0.313]))  # in th
 
 
 def pose(x: float, y: float, yaw: float) -> np.ndarray:
-    T = np.eye(4)
-    T[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
-    T[:2, 3] = x, y
-    return T
+    return se3(rot_z(yaw), [x, y, 0.0])
 
 
 T_A = pose(0.0, 0.0, 0.0)  # lru1's submap 0: the global frame itself

@@ -14,7 +14,7 @@ import pytest
 from dm_control import mjcf
 
 from sim.world.markers import MARKER_THICKNESS_M, MarkerSpec, add_marker, apriltag_image
-from slam.lie import rot_zyx, se3, se3_inv, skew, so3_exp, so3_log
+from slam.lie import adjoint, rot_zyx, se3, se3_inv, skew, so3_exp, so3_log
 from slam.markers import (
     SIGMA_CONSTANT,
     CornerRefinement,
@@ -22,7 +22,6 @@ from slam.markers import (
     MarkerDetector,
     MarkerException,
     UncertaintyModel,
-    adjoint,
     detection_covariance,
     refine_corners,
     relative_pose,

@@ -8,12 +8,13 @@ import math
 import numpy as np
 import pytest
 
+from slam.lie import roll_pitch, rot_z, se3, yaw_of
 from slam.matcher import MatcherParams, MatchMode, PairQueue, evaluate_pair, match_pair, prepare
-from slam.registration import fit_4d, fit_6d, icp, off_line_count, ransac, roll_pitch, rot_z, transform, two_point_4d, yaw_of
+from slam.registration import fit_4d, fit_6d, icp, off_line_count, ransac, two_point_4d
 
 
 def random_4d(rng: np.random.Generator) -> np.ndarray:
-    return transform(rot_z(rng.uniform(-math.pi, math.pi)), rng.uniform(-5, 5, 3))
+    return se3(rot_z(rng.uniform(-math.pi, math.pi)), rng.uniform(-5, 5, 3))
 
 
 def apply(T: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -76,9 +77,9 @@ def _normals(cloud: np.ndarray) -> np.ndarray:
 def test_icp_converges_from_a_perturbed_start_and_4d_keeps_roll_pitch(dof):
     rng = np.random.default_rng(3)
     target = _terrain_cloud(rng)
-    T = transform(rot_z(0.3), [0.5, -0.2, 0.1])
+    T = se3(rot_z(0.3), [0.5, -0.2, 0.1])
     source = apply(np.linalg.inv(T), target[::2])
-    start = transform(rot_z(0.3 + math.radians(4)), [0.65, -0.05, 0.0])
+    start = se3(rot_z(0.3 + math.radians(4)), [0.65, -0.05, 0.0])
     fit = icp(source, target, _normals(target), start, dof=dof, max_distance_m=0.5, iterations=60)
     assert fit is not None and fit.rmse_m < 0.01
     t_err, yaw_err = errors(fit.T_a_b, T)
@@ -111,7 +112,7 @@ def _square(x0, y0, size):
 def test_pairing_overlap_sigma_widening_and_score():
     p = MatcherParams(stereo_error_m=0.12)
     a, b = _Kp(("lru1", 2), _square(0, 0, 3)), _Kp(("lru2", 5), _square(0, 0, 3))
-    S_a, S_b = np.eye(4), transform(np.eye(3), [1.5, 1.5, 0])  # b's box 1.5..4.5 overlaps a's 0..3 by 1.5 x 1.5
+    S_a, S_b = np.eye(4), se3(np.eye(3), [1.5, 1.5, 0])  # b's box 1.5..4.5 overlaps a's 0..3 by 1.5 x 1.5
     cov = np.diag([1e-4] * 3 + [0.3**2, 0.2**2, 0.1**2])
     cand = evaluate_pair(a, b, S_a, S_b, cov, p)
     # eq. 6.1: 1.5 + 2 * 0.3 and 1.5 + 2 * 0.2; eq. 6.4: 0.125 * area + (0.3 + 0.2 + 0.1)
@@ -120,7 +121,7 @@ def test_pairing_overlap_sigma_widening_and_score():
     np.testing.assert_allclose(cand.sigma_xyz, [0.3, 0.2, 0.1])
     # eq. 6.2: without the sigmas the overlap is 2.25 m2, with tiny sigmas eq. 6.3 rejects
     assert evaluate_pair(a, b, S_a, S_b, np.diag([1e-4] * 3 + [1e-4] * 3), p) == "already certain"
-    far = transform(np.eye(3), [2.6, 2.6, 0])  # 0.4 x 0.4 overlap + 2 sigma each
+    far = se3(np.eye(3), [2.6, 2.6, 0])  # 0.4 x 0.4 overlap + 2 sigma each
     assert evaluate_pair(a, b, S_a, far, cov, p) == "no overlap"
     assert evaluate_pair(a, _Kp(("lru1", 3), _square(0, 0, 3)), S_a, S_a, cov, p) == "consecutive"
 
@@ -214,7 +215,7 @@ def _chain(graph, robot: str, target: np.ndarray, frames: int, sigma_m: float) -
     """Frame switches 0 -> ``frames`` of ``robot`` whose last origin lands on ``target``,
     each with ``sigma_m`` translation and 1 deg yaw standard deviation."""
     cov = np.diag([1e-6, 1e-6, math.radians(1) ** 2] + [sigma_m**2] * 3)
-    T_step = transform(rot_z(yaw_of(target[:3, :3]) / frames), target[:3, 3] / frames)
+    T_step = se3(rot_z(yaw_of(target[:3, :3]) / frames), target[:3, 3] / frames)
     first = target @ np.linalg.inv(np.linalg.matrix_power(T_step, frames - 1))  # s0 -> s1 carries the rest
     for k in range(frames):
         graph.add_frame_switch(robot, k, float(k), first if k == 0 else T_step, cov)
@@ -229,7 +230,7 @@ def test_team_matcher_pairs_from_the_graph_and_its_closure_corrects_it(rendered)
     (A, O_a), (B, O_b), _, _ = rendered
     graph = MultiRobotGraph("lru1")
     _chain(graph, "lru1", O_a, 3, 0.05)
-    drift = transform(rot_z(math.radians(2)), [0.25, -0.15, 0.0])
+    drift = se3(rot_z(math.radians(2)), [0.25, -0.15, 0.0])
     _chain(graph, "lru2", O_b @ drift, 7, 0.05)
     graph.add_match("lru1", 0, "lru2", 0, np.eye(4), np.diag([1e-4] * 3 + [0.01] * 3))  # lru2 starts where lru1 did
     graph.update()

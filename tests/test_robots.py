@@ -30,6 +30,7 @@ from sim.robots import RobotError, make_robot
 from sim.robots.base import WheelState
 from sim.robots.route import RouteTracker
 from sim.scenario import RouteConfig, load_scenario
+from sim.world.sensors import IMU_PRESETS
 from sim.world.terrain import generate_terrain
 from sim.world.compose import build_world
 
@@ -79,6 +80,12 @@ def test_make_robot_presets_names_and_errors():
         assert [m.tag_id for m in robot.markers] == tags[robot.name]
         assert all(m.name.startswith(f"{robot.name}/") for m in robot.markers)
         assert all(w.status == "pending" for w in robot.waypoints) and not robot.finished
+        # the robot-type traits the run and the on-board stack ask for fit the built robot
+        assert len(robot.markers) == robot.marker_count
+        assert robot.default_vo_rig in [rig.name for rig in robot.stereo_rigs]
+        assert robot.default_imu_preset in IMU_PRESETS and robot.default_cores >= 1 and robot.antenna_height_m > 0
+    assert [r.has_wheel_odometry for r in robots] == [True, True, False]
+    assert [r.min_mapping_height_m is None for r in robots] == [True, True, False]
     with pytest.raises(RobotError, match="carries 3 markers"):
         make_robot(sc.robots[0], [1, 2])
 

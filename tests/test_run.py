@@ -43,6 +43,24 @@ def test_same_seed_same_run_other_seed_other_run():
     assert not np.array_equal(np.stack(a.robots["rover"].log.imu), np.stack(c.robots["rover"].log.imu))
 
 
+def test_inserting_a_robot_changes_no_other_robots_randomness():
+    """Every robot's random streams are named by the robot (sim.seeding), not by its place in the team."""
+    import copy
+
+    bigger = copy.deepcopy(SMALL)
+    bigger["robots"].insert(0, {"name": "extra", "preset": "lru", "start": {"xy": [3, 3]}})
+    a, b = Run(load_scenario(copy.deepcopy(SMALL))), Run(load_scenario(bigger))
+    try:
+        for robot in ("rover", "copter"):
+            ra, rb = a.robots[robot], b.robots[robot]
+            assert ra.onboard.agent.matcher.params.seed == rb.onboard.agent.matcher.params.seed
+            assert np.array_equal(ra.imu.accel_bias, rb.imu.accel_bias) and np.array_equal(ra.imu.gyro_bias, rb.imu.gyro_bias)
+        assert a.robots["rover"].onboard.agent.matcher.params.seed != a.robots["copter"].onboard.agent.matcher.params.seed
+    finally:
+        a.close()
+        b.close()
+
+
 @pytest.fixture(scope="module")
 def quickstart():
     return run("scenarios/quickstart.yaml", ["duration_s=12", "output.recording=false", "output.topdown_png=false"])
@@ -80,11 +98,14 @@ def test_line_of_sight_is_cut_by_a_ridge_and_takes_the_link_down():
 
 def test_filter_drift_and_consistency_against_truth(quickstart):
     """Filter alone (IMU + VO, wheels on rovers), in the start frame, unaligned."""
-    from test_filter_etna import drift
+    from sim.evaluation.inputs import filter_input, team_truth
+    from sim.evaluation.trajectory import trajectory_metrics, truth_since
 
+    truth = team_truth(quickstart)
     for robot in ("lru1", "ardea"):  # narrow-angle rover and the hexacopter
         rt = quickstart.robots[robot]
-        m = drift(quickstart, robot)
+        estimate = filter_input(rt.onboard).estimate
+        m, _ = trajectory_metrics(estimate, truth_since(truth.of(robot), estimate.t[0]).trajectory)
         assert m["distance_m"] > 2.0
         assert m["final_error_percent_of_distance"] < 2.0, (robot, m["final_error_m"], m["distance_m"])
         vo = rt.onboard.estimator.vo_stats
@@ -114,7 +135,7 @@ def test_filter_nees_and_biases_against_truth(quickstart):
     bounds = {"lru1": (25.0, 10.0), "lru2": (10.0, 5.0), "ardea": (35.0, 35.0)}  # mean, median
     for robot, (mean_bound, median_bound) in bounds.items():
         log = quickstart.robots[robot].onboard.log
-        report = nees_report(np.stack(log.observable), np.stack(log.observable_true), np.stack(log.observable_cov))
+        report, _ = nees_report(np.stack(log.observable), np.stack(log.observable_true), np.stack(log.observable_cov))
         assert report["mean"] < mean_bound and report["median"] < median_bound, (robot, report["mean"], report["median"])
         bias, truth = np.stack(log.bias), np.stack(log.bias_true)
         # gyro biases from the resting start: within 0.1 deg/s all along (turn-on spread: 0.5 and 3 deg/s)
@@ -159,16 +180,17 @@ def test_imu_samples_integrate_to_the_physics_velocity(monkeypatch):
 
 
 def test_maps_against_the_true_terrain(quickstart, tmp_path):
-    """Each robot's map (issue 5 §5), built along its own filter poses and placed in the
+    """Each robot's map (docs/mapping.md), built along its own filter poses and placed in the
     world by its true start pose, against the terrain's true surface. Measured on this
     12 s run: rovers median 1.5-2.5 cm, > 99 % of points within 0.1 m; ARDEA median 5.4
     cm, 89 % (its filter is off by 5-10 cm); completeness of the explored area 78-81 %."""
-    from sim.evaluation import maps
+    from sim.evaluation import inputs, maps
 
     bounds = {"lru1": (0.04, 0.95), "lru2": (0.04, 0.95), "ardea": (0.1, 0.8)}  # median, share within 0.1 m
+    truth = inputs.team_truth(quickstart)
     for robot, (median_bound, within_bound) in bounds.items():
-        rt = quickstart.robots[robot]
-        section = maps.map_section(tmp_path, robot, rt.log, rt.onboard, quickstart.terrain)
+        section, plot = maps.map_section(tmp_path, robot, inputs.map_input(quickstart.robots[robot].onboard), truth, quickstart.terrain)
+        assert len(plot.points) == section["points"]
         accuracy, completeness = section["quality"]["accuracy"], section["quality"]["completeness"]
         assert accuracy["median_m"] < median_bound and accuracy["within_0_1_m"] > within_bound, (robot, accuracy)
         assert completeness["share"] > 0.6, (robot, completeness)
@@ -182,7 +204,7 @@ def test_maps_against_the_true_terrain(quickstart, tmp_path):
 
 
 def test_submap_along_true_poses_matches_the_terrain(monkeypatch):
-    """Issue 5: rendered SGBM depth integrated along the cameras' true poses (no filter)
+    """Rendered SGBM depth integrated along the cameras' true poses (no filter)
     gives a submap on the true surface, limited only by stereo: measured median 1.4 cm,
     p95 3.2 cm, 99.3 % within 0.1 m; occupied voxels 4.9 cm from the ground (median, 0.1 m
     voxels), the air halfway along the rays all free."""
@@ -241,7 +263,7 @@ def test_a_failing_evaluation_costs_only_its_own_section(monkeypatch, tmp_path):
 
     from sim.evaluation import maps, results_folder
 
-    def broken(*args):
+    def broken(*args, **kwargs):
         raise RuntimeError("deliberately broken")
 
     simulation = run(copy.deepcopy(SMALL))

@@ -1,9 +1,36 @@
+import math
+import typing
+from enum import Enum
 from pathlib import Path
 
 import pytest
 import yaml
 
-from sim.scenario import ScenarioError, apply_overrides, dump_scenario, load_scenario
+from sim.robots import PRESETS
+from sim.scenario import (
+    DetectionConfig,
+    GraphConfig,
+    HealthConfig,
+    MappingConfig,
+    MatchingConfig,
+    RobotConfig,
+    ScenarioError,
+    SlamConfig,
+    SlamParam,
+    apply_overrides,
+    dump_scenario,
+    load_scenario,
+    slam_kwargs,
+)
+from slam.agent import AgentParams
+from slam.graph import GraphParams, RobustKernel, Topology
+from slam.health import HealthParams
+from slam.local_estimator import LocalEstimator
+from slam.markers import UncertaintyModel
+from slam.matcher import MatcherParams, MatchMode
+from slam.obstacles import ObstacleParams
+from slam.rest import RestParams
+from slam.submap import SubmapParams
 
 SCENARIOS = sorted(Path(__file__).parents[1].joinpath("scenarios").glob("*.yaml"))
 
@@ -21,9 +48,12 @@ def problems(raw, overrides=None):
 
 
 @pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: p.name)
-def test_shipped_scenarios_validate(path):
+def test_shipped_scenarios_validate_and_their_dump_reloads_unchanged(path):
     scenario = load_scenario(path)
-    assert scenario.robots
+    dumped = dump_scenario(scenario)
+    again = load_scenario(yaml.safe_load(dumped))
+    assert again.assigned_tag_ids() == scenario.assigned_tag_ids()
+    assert dump_scenario(again) == dumped
 
 
 def test_unknown_key_names_path_and_allowed_keys():
@@ -55,7 +85,50 @@ def test_cross_field_checks():
     clash = minimal(robots=[{"name": "a", "preset": "lru", "tag_ids": [0, 1, 2]}], terrain={"lander": {"tag_id": 0}})
     assert any("already used by lander" in p for p in problems(clash))
     rover_alt = minimal(robots=[{"name": "a", "preset": "lru", "route": {"waypoints": [[1, 1, 3]]}}])
-    assert any("hexacopter only" in p for p in problems(rover_alt))
+    assert any("altitude_m is for the hexacopter only; rover waypoints [0]" in p for p in problems(rover_alt))
+    rover_land = minimal(robots=[{"name": "a", "preset": "lru_wide", "route": {"land": True}}])
+    assert any("route.land is for the hexacopter only" in p for p in problems(rover_land))
+    copter = load_scenario(minimal(robots=[{"name": "a", "preset": "ardea", "route": {"waypoints": [[1, 1, 3]], "land": True}}]))
+    assert copter.robots[0].route.waypoints[0].altitude_m == 3 and copter.robots[0].marker_count == 2
+    assert any("carries 2 markers, got 3" in p for p in problems(minimal(robots=[{"name": "a", "preset": "ardea", "tag_ids": [4, 5, 6]}])))
+
+
+def test_presets_are_the_robot_registry():
+    assert typing.get_args(RobotConfig.model_fields["preset"].annotation) == tuple(PRESETS)
+
+
+def test_slam_keys_take_slam_defaults_and_units():
+    """Keys declared with ``slam_field`` default to slam's own defaults, and the scenario
+    builds slam's parameter classes from them: with defaults exactly slam's defaults."""
+    assert ObstacleParams(**slam_kwargs(ObstacleParams, MappingConfig())) == ObstacleParams()
+    assert SubmapParams(**slam_kwargs(SubmapParams, MappingConfig())) == SubmapParams()
+    assert GraphParams(**slam_kwargs(GraphParams, GraphConfig())) == GraphParams()
+    assert MatcherParams(**slam_kwargs(MatcherParams, MatchingConfig())) == MatcherParams()
+    assert AgentParams(**slam_kwargs(AgentParams, GraphConfig(), DetectionConfig())) == AgentParams()
+    assert HealthParams(**slam_kwargs(HealthParams, HealthConfig())) == HealthParams()
+    assert RestParams(**slam_kwargs(RestParams, SlamConfig())) == RestParams()
+    assert slam_kwargs(RestParams, SlamConfig(zero_velocity=False)) == {"zero_velocity": False}
+    linked = 0
+    for section in (MappingConfig, GraphConfig, DetectionConfig, MatchingConfig, SlamConfig, HealthConfig):
+        for key, info in section.model_fields.items():
+            for param in [p for p in info.metadata if isinstance(p, SlamParam)]:
+                linked += 1
+                assert param.degrees == key.endswith("_deg"), key
+                if isinstance(param.slam_default, Enum):  # the schema lists exactly the enum's values
+                    assert typing.get_args(info.annotation) == tuple(e.value for e in type(param.slam_default)), key
+    assert linked == 36
+    # units and enums on the way to slam
+    kwargs = slam_kwargs(ObstacleParams, MappingConfig(max_slope_deg=35.0, max_depth_error_m=0.3))
+    assert kwargs["max_slope_rad"] == math.radians(35.0) and kwargs["max_error_m"] == 0.3
+    assert slam_kwargs(SubmapParams, MappingConfig(max_depth_error_m=0.3))["max_depth_error_m"] == 0.3
+    agent = slam_kwargs(AgentParams, GraphConfig(pose_buffer_s=60), DetectionConfig(uncertainty="lut", max_tilt_deg=45))
+    assert agent["uncertainty"] is UncertaintyModel.LUT and agent["buffer_horizon_s"] == 60
+    assert agent["max_target_tilt_rad"] == math.radians(45)
+    assert slam_kwargs(GraphParams, GraphConfig(topology="sequential"))["topology"] is Topology.SEQUENTIAL
+    assert slam_kwargs(GraphParams, GraphConfig(robust="gnc"))["robust"] is RobustKernel.GNC
+    assert slam_kwargs(MatcherParams, MatchingConfig(mode="6d"))["mode"] is MatchMode.SIX_D
+    wheel = slam_kwargs(LocalEstimator.on_wheel_odometry, SlamConfig())
+    assert wheel == {"speed_std": 0.03, "yaw_rate_std": 0.03, "vz_std": 0.05}
 
 
 def test_set_overrides_by_name_and_index_are_validated():
@@ -68,6 +141,17 @@ def test_set_overrides_by_name_and_index_are_validated():
         apply_overrides(minimal(), ["robots.zz.seed=1"])
     with pytest.raises(ScenarioError, match="expected dotted.key=value"):
         apply_overrides(minimal(), ["seed"])
+
+
+def test_robust_option_of_the_graph_is_a_validated_key():
+    """``slam.graph.robust`` (thesis 4.2.3): the Cauchy kernel by default, gnc and none by ``--set``."""
+    assert load_scenario(minimal()).slam.graph.robust == "cauchy" == GraphParams().robust.value
+    s = load_scenario(minimal(), ["slam.graph.robust=gnc", "slam.graph.gnc_inlier_probability=0.999"])
+    assert GraphParams(**slam_kwargs(GraphParams, s.slam.graph)) == GraphParams(robust=RobustKernel.GNC, gnc_inlier_probability=0.999)
+    (line,) = problems(minimal(), ["slam.graph.robust=huber"])
+    assert line.startswith("slam.graph.robust: got 'huber'") and "'cauchy', 'gnc' or 'none'" in line
+    (line,) = problems(minimal(), ["slam.graph.gnc_inlier_probability=1"])
+    assert line.startswith("slam.graph.gnc_inlier_probability: got 1")
 
 
 def test_tag_ids_are_distinct_and_dump_reloads():

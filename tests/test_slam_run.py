@@ -1,4 +1,4 @@
-"""Collaborative SLAM in whole runs (issue 6): detections, exchange over a link with an
+"""Collaborative SLAM in whole runs (thesis 4.2, 6.2): detections, exchange over a link with an
 outage, every robot's graph against its peers' and against ground truth."""
 
 import numpy as np

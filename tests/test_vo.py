@@ -25,15 +25,14 @@ import numpy as np
 import pytest
 from vo_sequences import COPTER, ROVER, StereoSequence, render_sequence
 
+from slam.lie import pose_error, se3, so3_exp
 from slam.stereo import StereoCalibration, StereoMatcher, point_error, triangulate
 from slam.vo import (
     StereoVO,
     VoException,
     VoParams,
     delta_in_body_frame,
-    pose_error,
     refine_pose,
-    so3_exp,
     stereo_point_covariance,
 )
 
@@ -134,9 +133,7 @@ def test_delta_in_body_frame_moves_the_covariance_with_the_adjoint():
     rng = np.random.default_rng(2)
 
     def pose(r, p):
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = so3_exp(r), p
-        return T
+        return se3(so3_exp(r), p)
 
     T_cam = pose([0.05, -0.2, 0.02], [0.3, 0.05, 0.8])
     X_kf, X_cur = pose([-1.9, 0.1, 1.6], [0.1, 0.0, 1.0]), pose([-1.7, 0.0, 1.5], [0.1, 0.02, 1.0])  # head moved

@@ -1,4 +1,4 @@
-"""Batch files: Monte-Carlo seeds x variants of one base scenario (issue 8).
+"""Batch files: Monte-Carlo seeds x variants of one base scenario.
 
 A batch YAML names a base scenario (path relative to the batch file), the seeds, and
 what varies::

@@ -1,7 +1,8 @@
 """Loop closures against ground truth (thesis 8.1.2, 8.1.3): every submap match a robot
 computed and every detection it made, compared with the true transform; counts per
 outcome; calibration of the predicted uncertainty (the share of errors within 1, 2
-and 3 predicted sigmas). Goes into ``metrics.json`` under ``loop_closures``.
+and 3 predicted sigmas). Goes into ``metrics.json`` under ``loop_closures``; reads a
+:class:`sim.evaluation.inputs.ClosureInput` per robot.
 
 A submap origin's truth is the robot's true pose when the filter switched into that
 local frame (frame 0: the filter's start), gravity-aligned as the origins are (4.1.2).
@@ -16,20 +17,22 @@ from typing import Any
 import numpy as np
 
 from sim.evaluation import trajectory
-from sim.evaluation.online_slam import detection_truth, rotation_deg, truth_at
-from slam.lie import so3_log
-from slam.registration import yaw_of
+from sim.evaluation.inputs import ClosureInput, TeamTruth
+from sim.evaluation.online_slam import detection_truth
+from sim.evaluation.statistics import StatisticsType, statistics
+from slam.lie import rotation_angle, so3_log, yaw_of
 
 SIGMA_LEVELS = (1, 2, 3)
+ERROR_STATISTICS = (StatisticsType.MEDIAN, StatisticsType.P90, StatisticsType.MAX)
 
 
-def origin_truth(onboard, gt_t: np.ndarray, gt_world: np.ndarray) -> dict[int, np.ndarray]:
+def origin_truth(closures: ClosureInput, truth: trajectory.Trajectory) -> dict[int, np.ndarray]:
     """Frame index -> true world pose of that local frame's origin (gravity-aligned)."""
-    if not onboard.log.t:
+    if closures.start_t is None:
         return {}
-    out = {0: trajectory.gravity_aligned(truth_at(gt_t, gt_world, onboard.log.t[0]))}
-    for s in onboard.estimator.switches:
-        out[s.frame_index] = trajectory.gravity_aligned(truth_at(gt_t, gt_world, s.t))
+    out = {0: trajectory.gravity_aligned(truth.at(closures.start_t))}
+    for s in closures.switches:
+        out[s.frame_index] = trajectory.gravity_aligned(truth.at(s.t))
     return out
 
 
@@ -39,14 +42,9 @@ def calibration(normalised: np.ndarray) -> dict[str, float]:
     return {f"within_{k}_sigma": float(np.mean(a <= k)) for k in SIGMA_LEVELS} if a.size else {}
 
 
-def _stats(v) -> dict[str, float]:
-    v = np.asarray(v, float)
-    return {"median": float(np.median(v)), "p90": float(np.percentile(v, 90)), "max": float(v.max())} if v.size else {}
-
-
-def match_metrics(name: str, onboard, origins: dict[str, dict[int, np.ndarray]]) -> dict[str, Any] | None:
+def match_metrics(closures: ClosureInput, origins: dict[str, dict[int, np.ndarray]]) -> dict[str, Any] | None:
     """This robot's own match attempts against the true relative transforms."""
-    matcher = onboard.agent.matcher
+    matcher = closures.matcher
     if matcher is None:
         return None
     records = matcher.records
@@ -58,7 +56,7 @@ def match_metrics(name: str, onboard, origins: dict[str, dict[int, np.ndarray]])
         "attempts": len(records),
         "matches": sum(r.result.success for r in records),
         "rejected": dict(reasons),
-        "duplicate_closures_ignored": onboard.agent.stats.duplicate_closures,
+        "duplicate_closures_ignored": closures.duplicate_closures,
     }
     trans, yaw, rot, prior_trans, norm, rows = [], [], [], [], [], []
     stages: dict[str, list[float]] = {}
@@ -75,30 +73,29 @@ def match_metrics(name: str, onboard, origins: dict[str, dict[int, np.ndarray]])
         e_t, e_yaw = float(np.linalg.norm(D[:3, 3])), abs(yaw_of(D[:3, :3]))
         trans.append(e_t)
         yaw.append(math.degrees(e_yaw))
-        rot.append(rotation_deg(D[:3, :3]))
+        rot.append(float(np.degrees(rotation_angle(D[:3, :3]))))
         prior_trans.append(float(np.linalg.norm(rec.prior.T_a_b[:3, 3] - true[:3, 3])))
         sigma = np.sqrt(np.diag(res.cov))
         norm += list(D[:3, 3] / sigma[3:]) + [yaw_of(D[:3, :3]) / sigma[2]]
         rows.append({"t": rec.t, "a": f"{ra}:{res.a[1]}", "b": f"{rb}:{res.b[1]}", "error_m": e_t, "yaw_error_deg": math.degrees(e_yaw)})
     if trans:
-        out["translation_error_m"] = _stats(trans)
-        out["yaw_error_deg"] = _stats(yaw)
-        out["rotation_error_deg"] = _stats(rot)
-        out["graph_prior_error_m"] = _stats(prior_trans)  # how far the graph was before the match
+        out["translation_error_m"] = statistics(trans, ERROR_STATISTICS)
+        out["yaw_error_deg"] = statistics(yaw, ERROR_STATISTICS)
+        out["rotation_error_deg"] = statistics(rot, ERROR_STATISTICS)
+        out["graph_prior_error_m"] = statistics(prior_trans, ERROR_STATISTICS)  # how far the graph was before the match
         out["calibration"] = calibration(np.asarray(norm))
         out["matches_list"] = rows
-    out["stage_wall_s"] = {k: {"mean": float(np.mean(v)), "max": float(np.max(v)), "n": len(v)} for k, v in sorted(stages.items())}
+    timing = (StatisticsType.MEAN, StatisticsType.MAX)
+    out["stage_wall_s"] = {k: {**statistics(v, timing), "n": len(v)} for k, v in sorted(stages.items())}
     return out
 
 
-def detection_calibration(
-    name: str, onboard, gt_world: dict[str, tuple[np.ndarray, np.ndarray]], landmark_world: np.ndarray | None
-) -> dict[str, Any]:
+def detection_calibration(name: str, closures: ClosureInput, truth: TeamTruth) -> dict[str, Any]:
     """Each detection's error in its own covariance's frame (right perturbation of the
     target pose in the detector's body), per component over the predicted sigmas."""
     norm, count = [], 0
-    for d in onboard.agent.detections:
-        true = detection_truth(name, d, gt_world, landmark_world)
+    for d in closures.detections:
+        true = detection_truth(name, d, truth)
         if true is None:
             continue
         D = np.linalg.solve(d.T_detector_target, true)  # T^-1 T_true = Exp(xi)
@@ -109,15 +106,16 @@ def detection_calibration(
     return {"count": count, "calibration": calibration(np.asarray(norm))}
 
 
-def loop_closure_section(run, gt_world: dict[str, tuple[np.ndarray, np.ndarray]], landmark_world: np.ndarray | None) -> dict[str, Any] | None:
-    """``metrics.json`` ``loop_closures``: per robot its matches and detections, and team totals."""
-    onboards = {n: r.onboard for n, r in run.robots.items() if r.onboard is not None and r.onboard.exchange and n in gt_world}
-    if not onboards:
+def loop_closure_section(closures: dict[str, ClosureInput], truth: TeamTruth) -> dict[str, Any] | None:
+    """``metrics.json`` ``loop_closures``: per robot with the graph its matches and
+    detections, and team totals."""
+    closures = {n: c for n, c in closures.items() if n in truth.robots}
+    if not closures:
         return None
-    origins = {n: origin_truth(ob, *gt_world[n]) for n, ob in onboards.items()}
+    origins = {n: origin_truth(c, truth.robots[n]) for n, c in closures.items()}
     robots = {}
-    for name, ob in onboards.items():
-        robots[name] = {"matches": match_metrics(name, ob, origins), "detections": detection_calibration(name, ob, gt_world, landmark_world)}
+    for name, c in closures.items():
+        robots[name] = {"matches": match_metrics(c, origins), "detections": detection_calibration(name, c, truth)}
     team = {
         "attempts": sum((m["matches"] or {}).get("attempts", 0) for m in robots.values()),
         "matches": sum((m["matches"] or {}).get("matches", 0) for m in robots.values()),

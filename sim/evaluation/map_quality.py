@@ -1,4 +1,4 @@
-"""Map quality against the simulator's true geometry (issue 5 §5; the thesis had no
+"""Map quality against the simulator's true geometry (docs/mapping.md; the thesis had no
 ground-truth maps, so these metrics are ours).
 
 The true surface is the triangulated heightfield (exact, ``Terrain.height_at``) plus the

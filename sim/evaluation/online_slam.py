@@ -1,4 +1,4 @@
-"""Evaluation of the collaborative SLAM against ground truth (thesis ch. 8, issue 6 §4).
+"""Evaluation of the collaborative SLAM against ground truth (thesis ch. 8; docs/slam.md).
 
 The SLAM trajectory of a robot is what it believed about itself at each moment, its
 graph's submap origin composed with its filter pose (eq. 4.6), never re-optimised
@@ -6,12 +6,15 @@ afterwards, in its map frame (its first submap origin = its filter's first frame
 the filter-only and SLAM trajectories share ground truth). A robot's beliefs about its
 peers are compared in its map frame, whose true pose is its true start frame (the filter's
 first frame). Detections are compared with the true relative pose at their capture time.
+The section reads a :class:`sim.evaluation.inputs.SlamInput`; what ``slam.png`` draws
+besides the metrics comes back as a :class:`SlamPlot`.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
 
@@ -21,108 +24,104 @@ import numpy as np
 from matplotlib.colors import to_rgb
 
 from sim.evaluation import trajectory
-from slam.lie import so3_log
+from sim.evaluation.inputs import SlamInput, TeamTruth
+from sim.evaluation.statistics import StatisticsType, statistics
+from sim.evaluation.trajectory import ErrorOverTime
+from slam.lie import rotation_angle, wrap_angle, yaw_of
+
+if TYPE_CHECKING:
+    from slam.agent import DetectionRecord
 
 FACTOR_COLOURS = {"prior": "k", "w": "tab:blue", "v": "tab:cyan", "u": "tab:olive", "d": "tab:red", "c": "tab:green", "o": "tab:purple"}
 LOOP_CLOSURE_TYPES = {"d": "robot_detection", "c": "submap_match", "o": "landmark"}
+BELIEF_STATISTICS = (StatisticsType.MEAN, StatisticsType.MEDIAN, StatisticsType.MAX, StatisticsType.FINAL)
+MEAN_MAX = (StatisticsType.MEAN, StatisticsType.MAX)
+MEDIAN_MAX = (StatisticsType.MEDIAN, StatisticsType.MAX)
 
 
-def truth_at(gt_t: np.ndarray, gt_world: np.ndarray, t: float) -> np.ndarray:
-    """True body pose at ``t`` (ground truth is sampled on the same clock)."""
-    i = min(int(np.searchsorted(gt_t, t - 1e-6)), len(gt_t) - 1)
-    return gt_world[i]
+@dataclass(frozen=True, eq=False)
+class SlamPlot:
+    """What ``slam.png`` draws of one robot besides its metrics."""
+
+    error_over_time: ErrorOverTime | None  # None when its trajectory could not be evaluated
+    edges: list[tuple[str, np.ndarray, np.ndarray]]  # (factor kind, one end, the other) in the world, via the true start
 
 
-def _stats(values: np.ndarray) -> dict[str, float]:
-    return {"mean": float(np.mean(values)), "median": float(np.median(values)), "max": float(np.max(values)), "final": float(values[-1])}
-
-
-def rotation_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.linalg.norm(so3_log(R))))
-
-
-def lander_tag_pose(model, data) -> np.ndarray | None:
-    """World pose of the lander's tag (the landmark's frame), or None without a lander."""
-    for g in range(model.ngeom):
-        if model.geom(g).name.endswith("lander_tag"):
-            T = np.eye(4)
-            T[:3, :3] = data.geom_xmat[g].reshape(3, 3)
-            T[:3, 3] = data.geom_xpos[g]
-            return T
-    return None
-
-
-def slam_section(
-    out: Path, name: str, logs: dict, onboard, gt_world: dict[str, tuple[np.ndarray, np.ndarray]], landmark_world: np.ndarray | None, recorder
-) -> dict[str, Any] | None:
+def slam_section(out: Path, name: str, slam: SlamInput | None, truth: TeamTruth, recorder=None) -> tuple[dict[str, Any] | None, SlamPlot | None]:
     """Metrics of one robot's SLAM: its own online trajectory, its beliefs about its
-    peers, its graph and its detections. ``gt_world``: robot -> (times, (N, 4, 4) world poses)."""
-    agent, slog = onboard.agent, onboard.slam_log
-    if not onboard.exchange:
-        return None
-    if len(slog.t) < 2 or not onboard.log.t:
-        return {"status": "not started", "poses": len(slog.t)}
-    log = logs[name]
-    gt_t, gt_start, T_world_start = trajectory.truth_since(log.gt_t, log.gt_pose, onboard.log.t[0])
-    t_est, T_est = np.asarray(slog.t), np.stack(slog.pose)
-    trajectory.write_tum(out / "trajectories" / f"{name}.slam.tum", t_est, T_est)
+    peers, its graph and its detections; and what ``slam.png`` draws of it. Writes its
+    trajectory's TUM file (and into the recording, if given). None without the graph."""
+    if slam is None:
+        return None, None
+    estimate = slam.estimate
+    if len(estimate) < 2 or slam.start_t is None:
+        return {"status": "not started", "poses": len(estimate)}, None
+    start = trajectory.truth_since(truth.of(name), slam.start_t)
+    T_world_start = start.T_world_start
+    trajectory.write_tum(out / "trajectories" / f"{name}.slam.tum", estimate)
     section: dict[str, Any] = {"status": "ok"}
+    error_over_time = None
     try:
-        section.update(trajectory.trajectory_metrics(t_est, T_est, gt_t, gt_start))
+        metrics, error_over_time = trajectory.trajectory_metrics(estimate, start.trajectory)
+        section.update(metrics)
     except trajectory.EvaluationError as exc:
         section = {"status": f"not evaluated: {exc}"}
-    edges = [(kind, T_world_start @ _h(a), T_world_start @ _h(b)) for kind, a, b in agent.graph.edges()]
+    edges = [(kind, T_world_start @ _h(a), T_world_start @ _h(b)) for kind, a, b in slam.graph.edges()]
     if recorder is not None:
-        recorder.log_slam(name, t_est, T_world_start[None] @ T_est)
-        origins, sigmas = [], []
-        for (robot, index), cov in sorted(agent.marginals.items()):
-            S = agent.graph.submap_origin(robot, index)
-            if S is not None:
-                R = T_world_start[:3, :3] @ S[:3, :3]
-                origins.append((T_world_start @ S)[:3, 3])
-                sigmas.append(2 * np.sqrt(np.diag(R @ cov[3:, 3:] @ R.T)))  # axis-aligned 2-sigma extents
-        colours = {k: tuple(int(255 * c) for c in to_rgb(v)) for k, v in FACTOR_COLOURS.items()}
-        recorder.log_graph(name, edges, colours, np.asarray(origins).reshape(-1, 3), np.asarray(sigmas).reshape(-1, 3))
-    section["beliefs"] = _beliefs(slog, gt_world, T_world_start)
-    section["graph"] = _graph_metrics(agent)
-    section["detections"] = _detection_metrics(name, agent, gt_world, landmark_world)
-    section["_plot"] = {"edges": edges}
-    return section
+        _record(recorder, name, slam, T_world_start, edges)
+    section["beliefs"] = _beliefs(slam.beliefs, truth, T_world_start)
+    section["graph"] = _graph_metrics(slam)
+    section["detections"] = _detection_metrics(name, slam, truth)
+    return section, SlamPlot(error_over_time, edges)
+
+
+def _record(recorder, name: str, slam: SlamInput, T_world_start: np.ndarray, edges: list) -> None:
+    """The online trajectory and the final graph, in the world via the true start."""
+    recorder.log_slam(name, slam.estimate.t, T_world_start[None] @ slam.estimate.T)
+    origins, sigmas = [], []
+    for (robot, index), cov in sorted(slam.marginals.items()):
+        S = slam.graph.submap_origin(robot, index)
+        if S is not None:
+            R = T_world_start[:3, :3] @ S[:3, :3]
+            origins.append((T_world_start @ S)[:3, 3])
+            sigmas.append(2 * np.sqrt(np.diag(R @ cov[3:, 3:] @ R.T)))  # axis-aligned 2-sigma extents
+    colours = {k: tuple(int(255 * c) for c in to_rgb(v)) for k, v in FACTOR_COLOURS.items()}
+    recorder.log_graph(name, edges, colours, np.asarray(origins).reshape(-1, 3), np.asarray(sigmas).reshape(-1, 3))
 
 
 def _h(p: np.ndarray) -> np.ndarray:
     return np.append(np.asarray(p, float), 1.0)
 
 
-def _beliefs(slog, gt_world, T_world_map: np.ndarray) -> dict[str, Any]:
+def _beliefs(beliefs: dict[str, list[tuple[float, float, np.ndarray]]], truth: TeamTruth, T_world_map: np.ndarray) -> dict[str, Any]:
     """This robot's belief about each peer: the peer's pose at the time of its latest
     estimate, in this robot's map, against truth at that time (what the graph knows),
     and against the peer's true pose at the moment of the belief (what the robot would
     act on, including the age of the estimate)."""
     out = {}
-    for peer, samples in sorted(slog.beliefs.items()):
-        t_peer, X_peer = gt_world[peer]
+    for peer, samples in sorted(beliefs.items()):
+        peer_truth = truth.robots[peer]
         err, yaw, err_now, age = [], [], [], []
         for t, t_est, B in samples:
-            true = np.linalg.solve(T_world_map, truth_at(t_peer, X_peer, t_est))
+            true = np.linalg.solve(T_world_map, peer_truth.at(t_est))
             err.append(np.linalg.norm(B[:3, 3] - true[:3, 3]))
-            yaw.append(abs(trajectory.wrap(trajectory.yaw_of(B[:3, :3]) - trajectory.yaw_of(true[:3, :3]))))
-            now = np.linalg.solve(T_world_map, truth_at(t_peer, X_peer, t))
+            yaw.append(abs(wrap_angle(yaw_of(B[:3, :3]) - yaw_of(true[:3, :3]))))
+            now = np.linalg.solve(T_world_map, peer_truth.at(t))
             err_now.append(np.linalg.norm(B[:3, 3] - now[:3, 3]))
             age.append(t - t_est)
         out[peer] = {
             "known_since_s": float(samples[0][0]),
             "samples": len(samples),
-            "position_error_m": _stats(np.asarray(err)),
-            "yaw_error_deg": _stats(np.degrees(yaw)),
-            "position_error_now_m": _stats(np.asarray(err_now)),
-            "estimate_age_s": _stats(np.asarray(age)),
+            "position_error_m": statistics(err, BELIEF_STATISTICS),
+            "yaw_error_deg": statistics(np.degrees(yaw), BELIEF_STATISTICS),
+            "position_error_now_m": statistics(err_now, BELIEF_STATISTICS),
+            "estimate_age_s": statistics(age, BELIEF_STATISTICS),
         }
     return out
 
 
-def _graph_metrics(agent) -> dict[str, Any]:
-    graph, stats = agent.graph, agent.stats
+def _graph_metrics(slam: SlamInput) -> dict[str, Any]:
+    graph, stats = slam.graph, slam.stats
     counts = graph.factor_counts()
     times = np.asarray(graph.update_times) * 1e3
     cov = np.asarray(stats.covariance_s) * 1e3
@@ -133,31 +132,56 @@ def _graph_metrics(agent) -> dict[str, Any]:
         "connected_robots": graph.connected_robots(),
         "loop_closures": {label: counts.get(kind, 0) for kind, label in LOOP_CLOSURE_TYPES.items()},
         "isam2_updates": len(times),
-        "isam2_update_ms": {"mean": float(times.mean()), "max": float(times.max())} if times.size else None,
-        "covariance_ms": {"mean": float(cov.mean()), "max": float(cov.max())} if cov.size else None,
+        "isam2_update_ms": statistics(times, MEAN_MAX) if times.size else None,
+        "covariance_ms": statistics(cov, MEAN_MAX) if cov.size else None,
+        # iSAM2 failures the graph recovered from (slam.graph.GraphRecovery) and the factors they left out
+        "recoveries": {
+            "count": len(graph.recoveries),
+            "events": [
+                {"t": r.t, "update": r.update, "error": r.error, "variable": r.variable, "action": r.action, "dropped": list(r.dropped)}
+                for r in graph.recoveries
+            ],
+        },
+        "dropped_factors": {"count": len(graph.dropped_factors()), "factors": graph.dropped_factors()},
+        # robust option of the measured factors; with gnc its outlier classifications (slam.graph.GncRun)
+        "robust": graph.params.robust.value,
+        "gnc": _gnc_metrics(graph.gnc_runs, graph.rejected_factors()),
+        "marginal_failures": stats.marginal_failures,
         "messages_received": dict(stats.received),
         "duplicates_ignored": stats.duplicates,
-        "submaps_received": len(agent.peer_submaps),
+        "submaps_received": slam.submaps_received,
     }
 
 
-def detection_truth(name: str, d, gt_world, landmark_world: np.ndarray | None) -> np.ndarray | None:
+def _gnc_metrics(runs: list, rejected: list[str]) -> dict[str, Any]:
+    """GNC runs (count, failures, wall time), the measured factors rejected at the end, re-admissions."""
+    wall = np.asarray([r.wall_s for r in runs]) * 1e3
+    return {
+        "runs": len(runs),
+        "failures": sum(r.error is not None for r in runs),
+        "wall_ms": statistics(wall, MEAN_MAX) if wall.size else None,
+        "rejections": sum(r.newly_rejected for r in runs),
+        "readmissions": sum(r.readmitted for r in runs),
+        "bridges_kept": sum(r.bridges for r in runs),
+        "rejected": {"count": len(rejected), "factors": rejected},
+    }
+
+
+def detection_truth(name: str, d: DetectionRecord, truth: TeamTruth) -> np.ndarray | None:
     """The true pose of a detection's target in the detector's body frame at its time
     (None for a landmark when the run has none)."""
-    t_own, X_own = gt_world[name]
     if d.target.startswith("landmark:"):
-        if landmark_world is None:
+        if truth.landmark is None:
             return None
-        target = landmark_world
+        target = truth.landmark
     else:
-        t_peer, X_peer = gt_world[d.target]
-        target = truth_at(t_peer, X_peer, d.t)
-    return np.linalg.solve(truth_at(t_own, X_own, d.t), target)
+        target = truth.robots[d.target].at(d.t)
+    return np.linalg.solve(truth.robots[name].at(d.t), target)
 
 
-def _detection_metrics(name: str, agent, gt_world, landmark_world: np.ndarray | None) -> dict[str, Any]:
+def _detection_metrics(name: str, slam: SlamInput, truth: TeamTruth) -> dict[str, Any]:
     """Each detection against the true pose of its target in the detector's body frame."""
-    stats = agent.stats
+    stats = slam.stats
     out: dict[str, Any] = {
         "markers_seen": stats.detections_seen,
         "used": stats.detections_used,
@@ -165,26 +189,31 @@ def _detection_metrics(name: str, agent, gt_world, landmark_world: np.ndarray | 
         "unanswerable": stats.unanswerable,
     }
     trans, rot, sigma = [], [], []
-    for d in agent.detections:
-        true = detection_truth(name, d, gt_world, landmark_world)
+    for d in slam.detections:
+        true = detection_truth(name, d, truth)
         if true is None:
             continue
         trans.append(np.linalg.norm(d.T_detector_target[:3, 3] - true[:3, 3]))
-        rot.append(rotation_deg(d.T_detector_target[:3, :3].T @ true[:3, :3]))
+        rot.append(float(np.degrees(rotation_angle(d.T_detector_target[:3, :3].T @ true[:3, :3]))))
         sigma.append(np.sqrt(np.trace(d.cov[3:, 3:]) / 3))
     if trans:
-        trans, sigma = np.asarray(trans), np.asarray(sigma)
-        out["position_error_m"] = {"median": float(np.median(trans)), "max": float(trans.max())}
-        out["rotation_error_deg"] = {"median": float(np.median(rot)), "max": float(np.max(rot))}
-        out["predicted_position_sigma_m"] = {"median": float(np.median(sigma))}
-        out["distance_m"] = {"min": float(min(d.distance_m for d in agent.detections)), "max": float(max(d.distance_m for d in agent.detections))}
+        out["position_error_m"] = statistics(trans, MEDIAN_MAX)
+        out["rotation_error_deg"] = statistics(rot, MEDIAN_MAX)
+        out["predicted_position_sigma_m"] = statistics(sigma, (StatisticsType.MEDIAN,))
+        out["distance_m"] = statistics([d.distance_m for d in slam.detections], (StatisticsType.MIN, StatisticsType.MAX))
     return out
 
 
-def plot_slam(robots_metrics: dict[str, Any], paths_world: dict[str, np.ndarray], path: Path) -> None:
+def plot_slam(
+    robots_metrics: dict[str, Any],
+    slam_plots: dict[str, SlamPlot | None],
+    filter_errors: dict[str, ErrorOverTime | None],
+    truth: TeamTruth,
+    path: Path,
+) -> None:
     """Per robot: filter-only and SLAM position error over time (top) and its final graph
     drawn top-down over the true paths, edges coloured by factor type (bottom)."""
-    names = [n for n, m in robots_metrics.items() if (m.get("slam") or {}).get("error_over_time")]
+    names = [n for n, p in slam_plots.items() if p is not None and p.error_over_time is not None]
     if not names:
         return
     fig, axes = plt.subplots(2, len(names), figsize=(6 * len(names), 10), dpi=100, squeeze=False)
@@ -192,22 +221,22 @@ def plot_slam(robots_metrics: dict[str, Any], paths_world: dict[str, np.ndarray]
         m = robots_metrics[name]
         s, f = m["slam"], m.get("filter") or {}
         ax = axes[0, col]
-        if f.get("error_over_time"):
-            ax.plot(
-                f["error_over_time"]["t"], f["error_over_time"]["position_m"], color="tab:gray", label=f"filter only: ATE {f['ate_m']['rmse']:.2f} m"
-            )
-        ax.plot(s["error_over_time"]["t"], s["error_over_time"]["position_m"], color="tab:red", label=f"SLAM online: ATE {s['ate_m']['rmse']:.2f} m")
+        if (filter_error := filter_errors.get(name)) is not None:
+            ax.plot(filter_error.t, filter_error.position_m, color="tab:gray", label=f"filter only: ATE {f['ate_m']['rmse']:.2f} m")
+        slam_error = slam_plots[name].error_over_time
+        ax.plot(slam_error.t, slam_error.position_m, color="tab:red", label=f"SLAM online: ATE {s['ate_m']['rmse']:.2f} m")
         ax.set_title(f"{name}: position error in its map frame (online, unaligned)")
         ax.set_xlabel("simulated time [s]")
         ax.set_ylabel("error [m]")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
         ax = axes[1, col]
-        for robot, xyz in paths_world.items():
+        for robot, true_path in truth.robots.items():
+            xyz = true_path.positions
             ax.plot(xyz[:, 0], xyz[:, 1], color="0.75", lw=1)
             ax.annotate(robot, xyz[0, :2], fontsize=7, color="0.5")
         seen = set()
-        for kind, a, b in s["_plot"]["edges"]:
+        for kind, a, b in slam_plots[name].edges:
             label = None if kind in seen else kind
             seen.add(kind)
             ax.plot([a[0], b[0]], [a[1], b[1]], color=FACTOR_COLOURS.get(kind, "k"), lw=1.5 if kind in LOOP_CLOSURE_TYPES else 0.8, label=label)

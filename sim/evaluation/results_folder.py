@@ -17,6 +17,10 @@
     error.txt                   only when the run failed: the traceback
 
 A failed run still writes everything it produced up to the failure.
+
+:func:`write` reads each section's typed input from the run (:mod:`sim.evaluation.inputs`),
+evaluates it under its own guard, and keeps what the plots draw (the ``*Plot`` data
+classes) apart from the metrics, so that ``metrics.json`` holds the metrics alone.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ from __future__ import annotations
 import csv
 import json
 import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,11 +40,13 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import LightSource
 
-from sim.evaluation import loop_closures, maps, online_slam, trajectory
+from sim.evaluation import inputs, loop_closures, maps, online_slam, trajectory
+from sim.evaluation.trajectory import ErrorOverTime
+from sim.run.faults import fault_metrics
 from sim.run.runner import Run
 from sim.scenario import Scenario, dump_scenario
 
-STEREO_SUMMARY_BINS = ("2-4m", "4-6m")  # the 2-6 m band the issue's acceptance test uses
+STEREO_SUMMARY_BINS = ("2-4m", "4-6m")  # the 2-6 m band tests/test_run.py holds stereo depth to
 
 
 def prepare(out: Path, scenario: Scenario) -> None:
@@ -52,150 +60,224 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
     out.mkdir(parents=True, exist_ok=True)
     if error is not None:
         (out / "error.txt").write_text(error)
-    robots_metrics: dict[str, Any] = {}
-    depth_rows, lane_rows, route_rows = [], [], []
-    gt_world = {
-        n: (np.asarray(r.log.gt_t), np.stack([trajectory.pose_matrix(p) for p in r.log.gt_pose]))
-        for n, r in run.robots.items() if r.log.gt_pose
-    }
-    landmark_world = online_slam.lander_tag_pose(run.world.model, run.world.data)
-    for name, runtime in run.robots.items():
-        log, robot = runtime.log, runtime.robot
-        _write_tum(out / "trajectories" / f"{name}.gt.tum", log.gt_t, log.gt_pose)
-        _write_sensors(out / "sensors" / f"{name}.npz", log)
-        stereo = {}
-        for rig in robot.stereo_rigs:
-            acc = log.depth_error.get(rig.name)
-            if acc is None:
-                continue
-            depth_rows += acc.rows(name, rig.name)
-            stereo[rig.name] = acc.summary(STEREO_SUMMARY_BINS)
-        stages = runtime.lane.stats(run.sim_time)
-        lane_rows += stages
-        waypoints = [_waypoint_row(name, wp) for wp in robot.waypoints]
-        route_rows += waypoints
-        counts = {s: sum(w["status"] == s for w in waypoints) for s in ("reached", "failed", "pending")}
-        filter_section = map_metrics = slam_metrics = None
-        if runtime.onboard is not None:
-            slam_metrics = _guarded(
-                out, f"SLAM evaluation of {name}", online_slam.slam_section,
-                out, name, {n: r.log for n, r in run.robots.items()}, runtime.onboard, gt_world, landmark_world, recorder,
-            )
-            filter_section = _guarded(out, f"filter evaluation of {name}", _filter_section, out, name, log, runtime.onboard, recorder)
-            map_metrics = _guarded(
-                out, f"map evaluation of {name}", maps.map_section,
-                out, name, log, runtime.onboard, run.terrain, recorder, list(run.robots).index(name),
-            )
-        robots_metrics[name] = {
-            "preset": robot.cfg.preset,
-            "final_status": robot.status,
-            "distance_m": _path_length(log.gt_pose),
-            "route": {"waypoints": len(waypoints), **counts},
-            "camera_frames": log.frames,
-            "stereo": stereo,
-            "filter": filter_section,
-            "slam": slam_metrics,
-            "map": map_metrics,
-            "lane": {
-                "utilization": runtime.lane.utilization(run.sim_time),
-                "stages": {row["stage"]: {k: v for k, v in row.items() if k not in ("robot", "stage")} for row in stages},
-            },
-        }
-    _write_csv(out / "stereo_depth_error.csv", depth_rows)
-    _write_csv(out / "lanes.csv", lane_rows)
-    _write_csv(out / "routes.csv", route_rows)
-    _write_csv(out / "comms_flows.csv", run.network.to_table())
-    _write_csv(out / "comms_links.csv", run.network.link_table())
-    comms = run.network.to_metrics()
-    comms["raw_equivalent_Bps"] = run.raw_equivalent_load()
-    closures = _guarded(out, "loop closure evaluation", loop_closures.loop_closure_section, run, gt_world, landmark_world)
+    truth = inputs.team_truth(run)
+    robots = {name: _robot_results(run, out, name, truth, recorder) for name in run.robots}
+    _write_tables(run, out, list(robots.values()))
+    comms = _comms_metrics(run)
+    closures, _ = _guarded(out, "loop closure evaluation", lambda: (loop_closures.loop_closure_section(inputs.closure_inputs(run), truth), None))
     metrics = {
         "scenario": run.scenario.name,
         "seed": run.scenario.seed,
         "status": "failed" if error else "completed",
         "error": error.strip().splitlines()[-1] if error else None,
         "runtime": runtime_metrics(run),
-        "robots": robots_metrics,
+        "robots": {name: r.metrics for name, r in robots.items()},
         "comms": comms,
         "loop_closures": closures,
     }
     if run.scenario.output.topdown_png:
-        plot_topdown(run, out / "topdown.png")
-        if any(m.get("filter") for m in robots_metrics.values()):
-            plot_filter_errors(robots_metrics, out / "filter_error.png")
-        online_slam.plot_slam(robots_metrics, {n: T[:, :3, 3] for n, (_, T) in gt_world.items()}, out / "slam.png")
-        robot_maps = {name: m["map"] for name, m in robots_metrics.items() if m.get("map")}
-        paths = {name: np.stack(r.log.gt_pose)[:, :3] for name, r in run.robots.items() if r.log.gt_pose}
-        maps.plot_maps(robot_maps, paths, run.terrain, out / "map_topdown.png")
-    for m in robots_metrics.values():  # series went into the plot; keep metrics.json scalar-sized
-        if m.get("map"):
-            m["map"].pop("_plot", None)
-        if m.get("slam"):
-            m["slam"].pop("_plot", None)
-            m["slam"].pop("error_over_time", None)
-        if m.get("filter"):
-            m["filter"].pop("error_over_time", None)
-            m["filter"].get("nees_roll_pitch_velocity", {}).pop("series", None)
+        _write_plots(run, out, robots, truth)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
     return metrics
 
 
-def _guarded(out: Path, what: str, section, *args) -> dict[str, Any] | None:
-    """An evaluation section; if it raises, its status says so and the traceback goes to
-    error.txt: an evaluation bug must not cost the run's other results."""
+@dataclass(frozen=True, eq=False)
+class FilterPlot:
+    """What ``filter_error.png`` and ``slam.png`` draw of one robot's filter."""
+
+    error_over_time: ErrorOverTime | None  # None when its trajectory could not be evaluated
+    nees: np.ndarray  # NEES of roll, pitch and body velocity per logged estimate
+
+
+@dataclass(frozen=True, eq=False)
+class RobotPlots:
+    """What the plots draw of one robot besides its metrics (None: nothing to draw)."""
+
+    filter: FilterPlot | None = None
+    slam: online_slam.SlamPlot | None = None
+    map: maps.MapPlot | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class _RobotResults:
+    """One robot's part of the results: its ``metrics.json`` entry, its plot data and its
+    rows of the CSV tables."""
+
+    metrics: dict[str, Any]
+    plots: RobotPlots
+    depth_rows: list[dict[str, Any]]
+    lane_rows: list[dict[str, Any]]
+    route_rows: list[dict[str, Any]]
+
+
+def _robot_results(run: Run, out: Path, name: str, truth: inputs.TeamTruth, recorder) -> _RobotResults:
+    """Write one robot's files and evaluate it: ground truth, sensors, stereo, lane, route
+    and, with its onboard stack, its filter, SLAM and map."""
+    runtime = run.robots[name]
+    log, robot = runtime.log, runtime.robot
+    trajectory.write_tum(out / "trajectories" / f"{name}.gt.tum", truth.of(name))
+    _write_sensors(out / "sensors" / f"{name}.npz", log)
+    stereo, depth_rows = _stereo(name, runtime)
+    stages = runtime.lane.stats(run.sim_time)
+    waypoints = [_waypoint_row(name, wp) for wp in robot.waypoints]
+    counts = {s: sum(w["status"] == s for w in waypoints) for s in ("reached", "failed", "pending")}
+    sections, plots = _evaluate_onboard(run, out, name, truth, recorder)
+    metrics = {
+        "preset": robot.cfg.preset,
+        "final_status": robot.status,
+        "distance_m": trajectory.path_length(truth.of(name)),
+        "route": {"waypoints": len(waypoints), **counts},
+        "camera_frames": log.frames,
+        "stereo": stereo,
+        **sections,
+        "faults": fault_metrics(runtime.onboard),  # injected wrong measurements (sim/run/faults.py)
+        "health": inputs.health_report(runtime.onboard, run.sim_time) if runtime.onboard is not None else None,
+        "lane": {
+            "utilization": runtime.lane.utilization(run.sim_time),
+            "stages": {row["stage"]: {k: v for k, v in row.items() if k not in ("robot", "stage")} for row in stages},
+        },
+    }
+    return _RobotResults(metrics, plots, depth_rows, stages, waypoints)
+
+
+def _stereo(name: str, runtime) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Per stereo rig its depth error summary (2-6 m), and the rows of ``stereo_depth_error.csv``."""
+    stereo, rows = {}, []
+    for rig in runtime.robot.stereo_rigs:
+        acc = runtime.log.depth_error.get(rig.name)
+        if acc is None:
+            continue
+        rows += acc.rows(name, rig.name)
+        stereo[rig.name] = acc.summary(STEREO_SUMMARY_BINS)
+    return stereo, rows
+
+
+def _evaluate_onboard(run: Run, out: Path, name: str, truth: inputs.TeamTruth, recorder) -> tuple[dict[str, Any], RobotPlots]:
+    """The ``filter``, ``slam`` and ``map`` sections of a robot (None without an onboard
+    stack), each read from the run and evaluated under its own guard, and their plot data."""
+    onboard = run.robots[name].onboard
+    if onboard is None:
+        return {"filter": None, "slam": None, "map": None}, RobotPlots()
+    slam, slam_plot = _guarded(
+        out, f"SLAM evaluation of {name}", lambda: online_slam.slam_section(out, name, inputs.slam_input(onboard), truth, recorder)
+    )
+    filter_section, filter_plot = _guarded(
+        out, f"filter evaluation of {name}", lambda: _filter_section(out, name, inputs.filter_input(onboard), truth.of(name), recorder)
+    )
+    robot_map, map_plot = _guarded(
+        out,
+        f"map evaluation of {name}",
+        lambda: maps.map_section(out, name, inputs.map_input(onboard), truth, run.terrain, recorder, list(run.robots).index(name)),
+    )
+    return {"filter": filter_section, "slam": slam, "map": robot_map}, RobotPlots(filter_plot, slam_plot, map_plot)
+
+
+def _write_tables(run: Run, out: Path, robots: list[_RobotResults]) -> None:
+    _write_csv(out / "stereo_depth_error.csv", [row for r in robots for row in r.depth_rows])
+    _write_csv(out / "lanes.csv", [row for r in robots for row in r.lane_rows])
+    _write_csv(out / "routes.csv", [row for r in robots for row in r.route_rows])
+    _write_csv(out / "comms_flows.csv", run.network.to_table())
+    _write_csv(out / "comms_links.csv", run.network.link_table())
+
+
+def _comms_metrics(run: Run) -> dict[str, Any]:
+    comms = run.network.to_metrics()
+    comms["raw_equivalent_Bps"] = run.raw_equivalent_load()
+    return comms
+
+
+def _write_plots(run: Run, out: Path, robots: dict[str, _RobotResults], truth: inputs.TeamTruth) -> None:
+    """topdown.png, filter_error.png, slam.png and map_topdown.png."""
+    metrics = {name: r.metrics for name, r in robots.items()}
+    plots = {name: r.plots for name, r in robots.items()}
+    plot_topdown(run, out / "topdown.png")
+    if any(m.get("filter") for m in metrics.values()):
+        plot_filter_errors(metrics, {name: p.filter for name, p in plots.items()}, out / "filter_error.png")
+    filter_errors = {name: p.filter.error_over_time if p.filter else None for name, p in plots.items()}
+    online_slam.plot_slam(metrics, {name: p.slam for name, p in plots.items()}, filter_errors, truth, out / "slam.png")
+    robot_maps = {name: m["map"] for name, m in metrics.items() if m.get("map")}
+    maps.plot_maps(robot_maps, {name: p.map for name, p in plots.items()}, truth, run.terrain, out / "map_topdown.png")
+
+
+def _guarded(out: Path, what: str, evaluate: Callable[[], tuple[Any, Any]]) -> tuple[Any, Any]:
+    """An evaluation section, ``evaluate() -> (metrics, plot data)``; if it raises, its
+    status says so, it has no plot data and the traceback goes to error.txt: an
+    evaluation bug must not cost the run's other results."""
     try:
-        return section(*args)
+        return evaluate()
     except Exception as exc:
         with (out / "error.txt").open("a") as f:
             f.write(f"{what} failed:\n{traceback.format_exc()}\n")
-        return {"status": f"{what} failed: {type(exc).__name__}: {exc}"}
+        return {"status": f"{what} failed: {type(exc).__name__}: {exc}"}, None
 
 
-def _filter_section(out: Path, name: str, log, onboard, recorder) -> dict[str, Any] | None:
-    """Filter-only trajectory against ground truth in the robot's start frame (issue 4 §4)."""
-    est = onboard.log
-    if len(est.t) < 2:
-        return {"status": "not started", "poses": len(est.t)}
-    gt_t, gt_start, T_world_start = trajectory.truth_since(log.gt_t, log.gt_pose, est.t[0])  # the filter's first frame
-    T_est = np.stack(est.pose_first_frame)
+def _filter_section(
+    out: Path, name: str, filt: inputs.FilterInput, truth: trajectory.Trajectory, recorder
+) -> tuple[dict[str, Any], FilterPlot | None]:
+    """Filter-only trajectory against ground truth in the robot's start frame (thesis
+    4.1; docs/estimation.md), and what the plots draw of it. ``truth``: the robot's
+    ground truth in the world."""
+    est = filt.estimate
+    if len(est) < 2:
+        return {"status": "not started", "poses": len(est)}, None
+    start = trajectory.truth_since(truth, est.t[0])  # the filter's first frame
     if recorder is not None:
-        recorder.log_filter(name, np.asarray(est.t), T_world_start[None] @ T_est, np.stack(est.position_std))
-    trajectory.write_tum(out / "trajectories" / f"{name}.gt_start.tum", gt_t, gt_start)
-    trajectory.write_tum(out / "trajectories" / f"{name}.filter.tum", np.asarray(est.t), T_est)
+        recorder.log_filter(name, est.t, start.T_world_start[None] @ est.T, filt.position_std)
+    trajectory.write_tum(out / "trajectories" / f"{name}.gt_start.tum", start.trajectory)
+    trajectory.write_tum(out / "trajectories" / f"{name}.filter.tum", est)
     section: dict[str, Any] = {"status": "ok"}
+    error_over_time = None
     try:
-        section.update(trajectory.trajectory_metrics(np.asarray(est.t), T_est, gt_t, gt_start))
+        metrics, error_over_time = trajectory.trajectory_metrics(est, start.trajectory)
+        section.update(metrics)
     except trajectory.EvaluationError as exc:
         section = {"status": f"not evaluated: {exc}"}
-    section["nees_roll_pitch_velocity"] = trajectory.nees_report(
-        np.stack(est.observable), np.stack(est.observable_true), np.stack(est.observable_cov)
-    )
-    bias, bias_true = np.stack(est.bias), np.stack(est.bias_true)
+    section["nees_roll_pitch_velocity"], nees = trajectory.nees_report(filt.observable, filt.observable_true, filt.observable_cov)
+    bias, bias_true = filt.bias, filt.bias_true
     section["bias_error"] = {
         "accel_initial_mps2": float(np.linalg.norm(bias_true[0, :3] - bias[0, :3])),
         "accel_final_mps2": float(np.linalg.norm(bias_true[-1, :3] - bias[-1, :3])),
         "gyro_initial_dps": float(np.degrees(np.linalg.norm(bias_true[0, 3:] - bias[0, 3:]))),
         "gyro_final_dps": float(np.degrees(np.linalg.norm(bias_true[-1, 3:] - bias[-1, 3:]))),
     }
-    vo = onboard.estimator.vo_stats
-    section["vo"] = {"frames": vo.frames, "ok": vo.ok, "applied": vo.applied, "rejected_by_gate": vo.rejected, "failures": vo.failures}
-    section["frame_switches"] = len(onboard.estimator.switches)
-    return section
+    section["vo"] = {**filt.vo, "rejected_by_gate": filt.vo["rejections_by_reason"].get("gate", 0)}
+    section["zero_velocity"] = {**filt.rest, **_rest_against_truth(filt.rest["intervals"], truth)}
+    section["frame_switches"] = filt.frame_switches
+    return section, FilterPlot(error_over_time, nees)
 
 
-def plot_filter_errors(robots_metrics: dict[str, Any], path: Path) -> None:
+def _rest_against_truth(intervals: list[list[float]], truth: trajectory.Trajectory, moving_mps: float = 0.01) -> dict[str, Any]:
+    """The zero-velocity updates judged by the true speed (world frame, finite differences
+    of the ground truth): its maximum inside the rest intervals, and how long the robot
+    was updated as resting while it truly moved faster than ``moving_mps``."""
+    if len(truth) < 2 or not intervals:
+        return {"true_speed_max_mps": None, "moving_s": 0.0}
+    t, p = truth.t, truth.T[:, :3, 3]
+    dt = np.diff(t)
+    speed = np.linalg.norm(np.diff(p, axis=0), axis=1) / np.where(dt > 0, dt, np.inf)
+    mid = 0.5 * (t[1:] + t[:-1])
+    inside = np.zeros(len(mid), bool)
+    for a, b in intervals:
+        inside |= (mid >= a) & (mid <= b)
+    if not inside.any():
+        return {"true_speed_max_mps": None, "moving_s": 0.0}
+    return {"true_speed_max_mps": float(speed[inside].max()), "moving_s": float(dt[inside & (speed > moving_mps)].sum())}
+
+
+def plot_filter_errors(robots_metrics: dict[str, Any], plots: dict[str, FilterPlot | None], path: Path) -> None:
     """Filter-only position and yaw error over time, one line per robot."""
     fig, (ax_p, ax_y, ax_n) = plt.subplots(3, 1, figsize=(9, 8), sharex=True, dpi=110)
     for name, m in robots_metrics.items():
         f = m.get("filter") or {}
-        series = f.get("error_over_time")
-        if not series:
+        plot = plots.get(name)
+        if plot is None or plot.error_over_time is None:
             continue
+        series = plot.error_over_time
         label = f"{name}: final {f['final_error_m']:.2f} m ({f['final_error_percent_of_distance']:.2f} % of {f['distance_m']:.0f} m)"
-        ax_p.plot(series["t"], series["position_m"], label=label)
-        ax_y.plot(series["t"], series["yaw_deg"], label=name)
+        ax_p.plot(series.t, series.position_m, label=label)
+        ax_y.plot(series.t, series.yaw_deg, label=name)
         nees = f["nees_roll_pitch_velocity"]
-        ax_n.plot(series["t"][: len(nees["series"])], nees["series"], lw=0.6, label=f"{name}: mean {nees['mean']:.1f}")
+        ax_n.plot(series.t[: len(plot.nees)], plot.nees, lw=0.6, label=f"{name}: mean {nees['mean']:.1f}")
     if robots_metrics:
         any_nees = next(
             (f["nees_roll_pitch_velocity"] for m in robots_metrics.values() if (f := m.get("filter")) and "nees_roll_pitch_velocity" in f),
@@ -240,21 +322,6 @@ def _waypoint_row(robot: str, wp) -> dict[str, Any]:
         "reached_t": wp.reached_t,
         "reason": wp.reason if wp.status != "pending" else "run ended before the robot got there",
     }
-
-
-def _path_length(poses: list[np.ndarray]) -> float:
-    if len(poses) < 2:
-        return 0.0
-    xyz = np.stack(poses)[:, :3]
-    return float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum())
-
-
-def _write_tum(path: Path, times: list[float], poses: list[np.ndarray]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w") as f:
-        for t, p in zip(times, poses):
-            x, y, z, qw, qx, qy, qz = p
-            f.write(f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} {qx:.8f} {qy:.8f} {qz:.8f} {qw:.8f}\n")
 
 
 def _write_sensors(path: Path, log) -> None:
@@ -358,6 +425,13 @@ def _slam_summary(s: dict[str, Any] | None) -> str:
     return f"; SLAM final error {s['final_error_m']:.2f} m, loop closures " + ", ".join(f"{k} {v}" for k, v in lc.items())
 
 
+def _health_summary(health: dict[str, Any] | None) -> str:
+    """`` (estimator lost since 123.4 s: vo lost)``; nothing while the estimator is ok."""
+    if not health or health["state"] == "ok":
+        return ""
+    return f" (estimator {health['state']} since {health['since']:.1f} s: {health['reason']})"
+
+
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
     """Short human summary of a run for the CLI."""
     rt = metrics["runtime"]
@@ -369,7 +443,8 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             f"{rig} depth err {s['median_rel_error'] * 100:.1f} %" for rig, s in m["stereo"].items() if s.get("median_rel_error") is not None
         )
         lines.append(
-            f"{name}: {m['final_status']}, {m['distance_m']:.1f} m, waypoints {route['reached']}/{route['waypoints']} reached"
+            f"{name}: {m['final_status']}{_health_summary(m.get('health'))}, {m['distance_m']:.1f} m, "
+            f"waypoints {route['reached']}/{route['waypoints']} reached"
             + (f", {route['failed']} failed" if route["failed"] else "")
             + (f"; {stereo} (2-6 m)" if stereo else "")
             + _filter_summary(m.get("filter"))

@@ -2,15 +2,18 @@
 
 Each robot is evaluated in its own start frame: the gravity-aligned frame at its
 first ground-truth pose (x, y, z and yaw of the body, roll and pitch dropped), which is
-how the robots' map frames are defined (thesis 4.1.2, design notes §3). ATE is
+how the robots' map frames are defined (thesis 4.1.2, docs/slam.md). ATE is
 reported unaligned in that frame, as the thesis reports its errors, and SE(3)-aligned
 (Umeyama, evo) for comparison; RPE per metre travelled; final error absolute and as a
-percentage of the distance driven; yaw error over time.
+percentage of the distance driven; yaw error over time. Trajectories travel as
+:class:`Trajectory`; the error series over time, for plots, come back apart from the
+metrics (:class:`ErrorOverTime`). Statistics: :mod:`sim.evaluation.statistics`.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +22,11 @@ from evo.core.trajectory import PoseTrajectory3D
 from evo.core.units import Unit
 from scipy.spatial.transform import Rotation
 
+from sim.evaluation.statistics import StatisticsType, statistics
+from slam.lie import quat_to_rot, se3, wrap_angle, yaw_of
+
+ERROR_STATISTICS = (StatisticsType.RMSE, StatisticsType.MEAN, StatisticsType.MEDIAN, StatisticsType.MAX)
+
 
 class EvaluationError(ValueError):
     """Trajectories that cannot be compared (too short, no common time span)."""
@@ -26,16 +34,83 @@ class EvaluationError(ValueError):
 
 def pose_matrix(xyz_qwxyz: np.ndarray) -> np.ndarray:
     """4x4 from ``[x, y, z, qw, qx, qy, qz]`` (the run log's ground-truth rows)."""
-    T = np.eye(4)
-    T[:3, 3] = xyz_qwxyz[:3]
-    qw, qx, qy, qz = xyz_qwxyz[3:7]
-    T[:3, :3] = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
-    return T
+    return se3(quat_to_rot(xyz_qwxyz[3:7]), xyz_qwxyz[:3])
 
 
-def yaw_of(R: np.ndarray) -> float:
-    """Yaw of a rotation matrix (z-y-x Euler convention, z up)."""
-    return math.atan2(R[1, 0], R[0, 0])
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """Body poses over time in one frame: ``t`` (N,) simulated seconds, ``T`` (N, 4, 4).
+
+    ``quat_xyzw`` (N, 4): the orientations as logged, for a trajectory made from the run
+    log's quaternion rows (:meth:`from_pose_rows`), so that :func:`write_tum` writes them
+    as they came instead of converting the matrices back.
+    """
+
+    t: np.ndarray
+    T: np.ndarray
+    quat_xyzw: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        t, T = np.asarray(self.t, dtype=float), np.asarray(self.T, dtype=float)
+        if T.ndim != 3 or T.shape[1:] != (4, 4) or t.shape != (len(T),):
+            raise EvaluationError(f"need (N,) times and (N, 4, 4) poses, got {t.shape} and {T.shape}")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "T", T)
+
+    @classmethod
+    def from_pose_rows(cls, t, rows) -> Trajectory:
+        """From the run log's ground-truth rows ``[x, y, z, qw, qx, qy, qz]``."""
+        rows = np.asarray(rows, dtype=float).reshape(-1, 7)
+        T = np.stack([pose_matrix(p) for p in rows]) if len(rows) else np.zeros((0, 4, 4))
+        return cls(t, T, rows[:, [4, 5, 6, 3]])
+
+    @classmethod
+    def from_lists(cls, t: list[float], poses: list[np.ndarray]) -> Trajectory:
+        """From a log's lists of times and 4x4 poses (empty ones included)."""
+        return cls(np.asarray(t, dtype=float), np.stack(poses) if poses else np.zeros((0, 4, 4)))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.T[:, :3, 3]
+
+    def quaternions_xyzw(self) -> np.ndarray:
+        if self.quat_xyzw is not None:
+            return self.quat_xyzw
+        return Rotation.from_matrix(self.T[:, :3, :3]).as_quat() if len(self) else np.zeros((0, 4))
+
+    def since(self, t0: float) -> Trajectory:
+        """The trajectory from its first sample at or after ``t0``."""
+        first = int(np.searchsorted(self.t, t0 - 1e-9))
+        return Trajectory(self.t[first:], self.T[first:], None if self.quat_xyzw is None else self.quat_xyzw[first:])
+
+    def at(self, t: float) -> np.ndarray:
+        """The pose at the first sample at or after ``t`` (the last one after the end;
+        ground truth and the logged estimates share the simulation clock)."""
+        i = min(int(np.searchsorted(self.t, t - 1e-6)), len(self.t) - 1)
+        return self.T[i]
+
+
+@dataclass(frozen=True, eq=False)
+class StartFrameTruth:
+    """A robot's ground truth from its filter's start, in its start frame (the
+    gravity-aligned frame of that first pose: the robot's map frame), and that frame in
+    the world."""
+
+    trajectory: Trajectory
+    T_world_start: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class ErrorOverTime:
+    """Per pose associated with ground truth: its time, its position error (unaligned)
+    and its yaw error; for plots, not for ``metrics.json``."""
+
+    t: np.ndarray
+    position_m: np.ndarray
+    yaw_deg: np.ndarray
 
 
 def gravity_aligned(T: np.ndarray) -> np.ndarray:
@@ -53,43 +128,36 @@ def in_start_frame(poses_world: np.ndarray) -> np.ndarray:
     return start_inv[None] @ poses_world
 
 
-def truth_since(gt_t, gt_pose_rows, t0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Ground truth from its first sample at or after ``t0`` (a robot's filter start):
-    the times, the poses (N, 4, 4) in the gravity-aligned frame of that first pose (the
-    robot's start and map frame), and that frame in the world, ``T_world_start``."""
-    gt_t = np.asarray(gt_t, dtype=float)
-    first = int(np.searchsorted(gt_t, t0 - 1e-9))
-    poses = np.stack([pose_matrix(p) for p in gt_pose_rows[first:]])
-    return gt_t[first:], in_start_frame(poses), gravity_aligned(poses[0])
+def truth_since(world: Trajectory, t0: float) -> StartFrameTruth:
+    """Ground truth in the world from its first sample at or after ``t0`` (a robot's
+    filter start), expressed in the gravity-aligned frame of that first pose."""
+    since = world.since(t0)
+    return StartFrameTruth(Trajectory(since.t, in_start_frame(since.T)), gravity_aligned(since.T[0]))
 
 
-def write_tum(path: Path, times, poses: np.ndarray) -> None:
-    """(N, 4, 4) poses as a TUM file: ``t x y z qx qy qz qw`` per line."""
-    quats = Rotation.from_matrix(np.asarray(poses)[:, :3, :3]).as_quat()  # x, y, z, w
+def write_tum(path: Path, trajectory: Trajectory) -> None:
+    """A trajectory as a TUM file: ``t x y z qx qy qz qw`` per line."""
+    quats = trajectory.quaternions_xyzw()
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w") as f:
-        for t, T, q in zip(times, poses, quats):
+        for t, T, q in zip(trajectory.t, trajectory.T, quats):
             f.write(f"{t:.6f} {T[0, 3]:.6f} {T[1, 3]:.6f} {T[2, 3]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}\n")
 
 
-def path_length(poses: np.ndarray) -> float:
-    return float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()) if len(poses) > 1 else 0.0
+def path_length(trajectory: Trajectory) -> float:
+    """Distance along the positions (0 for fewer than two poses)."""
+    xyz = trajectory.positions
+    return float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()) if len(xyz) > 1 else 0.0
 
 
-def _traj(times: np.ndarray, poses: np.ndarray) -> PoseTrajectory3D:
-    return PoseTrajectory3D(poses_se3=list(poses), timestamps=np.asarray(times, dtype=float))
+def _evo(trajectory: Trajectory) -> PoseTrajectory3D:
+    return PoseTrajectory3D(poses_se3=list(trajectory.T), timestamps=trajectory.t)
 
 
-def _stats(metric) -> dict[str, float]:
-    s = metric.get_all_statistics()
-    return {k: float(s[k]) for k in ("rmse", "mean", "median", "max")}
-
-
-def trajectory_metrics(
-    t_est: np.ndarray, T_est: np.ndarray, t_gt: np.ndarray, T_gt: np.ndarray, max_time_diff: float = 0.011
-) -> dict[str, float | dict]:
-    """Compare an estimated trajectory with ground truth, both (N, 4, 4) in the same frame."""
-    ref, est = _traj(t_gt, T_gt), _traj(t_est, T_est)
+def trajectory_metrics(estimate: Trajectory, truth: Trajectory, max_time_diff: float = 0.011) -> tuple[dict[str, float | dict], ErrorOverTime]:
+    """Compare an estimated trajectory with ground truth in the same frame: the metrics
+    and the errors over time."""
+    ref, est = _evo(truth), _evo(estimate)
     try:
         ref, est = sync.associate_trajectories(ref, est, max_diff=max_time_diff)
     except sync.SyncException as exc:
@@ -106,39 +174,31 @@ def trajectory_metrics(
     out: dict[str, float | dict] = {
         "poses": int(ref.num_poses),
         "distance_m": distance,
-        "ate_m": _stats(ate),
-        "ate_aligned_m": _stats(ate_aligned),
+        "ate_m": statistics(ate.error, ERROR_STATISTICS),
+        "ate_aligned_m": statistics(ate_aligned.error, ERROR_STATISTICS),
     }
     if distance > 1.5:
         rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=1.0, delta_unit=Unit.meters, all_pairs=True)
         try:
             rpe.process_data((ref, est))
-            out["rpe_per_m"] = _stats(rpe)
+            out["rpe_per_m"] = statistics(rpe.error, ERROR_STATISTICS)
         except metrics.MetricsException as exc:
             out["rpe_per_m"] = {"status": f"not computed: {exc}"}
     else:
         out["rpe_per_m"] = {"status": f"not computed: only {distance:.2f} m travelled"}
     final = float(np.linalg.norm(ref.positions_xyz[-1] - est.positions_xyz[-1]))
     yaw_err = np.array(
-        [wrap(yaw_of(e[:3, :3]) - yaw_of(r[:3, :3])) for r, e in zip(ref.poses_se3, est.poses_se3)]
+        [wrap_angle(yaw_of(e[:3, :3]) - yaw_of(r[:3, :3])) for r, e in zip(ref.poses_se3, est.poses_se3)]
     )
     out["final_error_m"] = final
     out["final_error_percent_of_distance"] = 100.0 * final / distance if distance > 0 else None
     out["yaw_error_deg"] = {"final": math.degrees(yaw_err[-1]), "max_abs": math.degrees(np.abs(yaw_err).max())}
-    out["error_over_time"] = {
-        "t": ref.timestamps.tolist(),
-        "position_m": ate.error.tolist(),
-        "yaw_deg": np.degrees(yaw_err).tolist(),
-    }
-    return out
+    return out, ErrorOverTime(ref.timestamps, ate.error, np.degrees(yaw_err))
 
 
-def wrap(angle: float) -> float:
-    return (angle + math.pi) % (2 * math.pi) - math.pi
-
-
-def nees_report(estimate: np.ndarray, truth: np.ndarray, cov: np.ndarray, angle_dims: int = 2) -> dict:
-    """NEES over time of an estimate (N, d) with covariances (N, d, d) against truth.
+def nees_report(estimate: np.ndarray, truth: np.ndarray, cov: np.ndarray, angle_dims: int = 2) -> tuple[dict, np.ndarray]:
+    """NEES over time of an estimate (N, d) with covariances (N, d, d) against truth:
+    the report and the NEES series (for plots).
 
     The first ``angle_dims`` components are angles (wrapped). Reports the mean NEES, the
     share of samples inside the two-sided 95 % chi-square interval of ``d`` degrees of
@@ -149,16 +209,15 @@ def nees_report(estimate: np.ndarray, truth: np.ndarray, cov: np.ndarray, angle_
     from scipy.stats import chi2
 
     err = estimate - truth
-    err[:, :angle_dims] = (err[:, :angle_dims] + np.pi) % (2 * np.pi) - np.pi
+    err[:, :angle_dims] = wrap_angle(err[:, :angle_dims])
     values = np.einsum("ni,nij,nj->n", err, np.linalg.inv(cov), err)
     d = estimate.shape[1]
     lo, hi = chi2.ppf(0.025, d), chi2.ppf(0.975, d)
-    return {
+    report = {
         "dof": d,
-        "mean": float(values.mean()),
-        "median": float(np.median(values)),
+        **statistics(values, (StatisticsType.MEAN, StatisticsType.MEDIAN)),
         "share_in_95_interval": float(np.mean((values >= lo) & (values <= hi))),
         "share_above_95_interval": float(np.mean(values > hi)),
         "interval_95": [float(lo), float(hi)],
-        "series": values.tolist(),
     }
+    return report, values

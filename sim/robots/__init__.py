@@ -8,11 +8,14 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from sim.robots.ardea import Ardea
 from sim.robots.base import Robot, RobotError, WaypointRecord, WheelState
 from sim.robots.lru import LRU, LRUWide
-from sim.scenario import RobotConfig
+
+if TYPE_CHECKING:  # sim.scenario imports PRESETS to validate robots
+    from sim.scenario import RobotConfig
 
 __all__ = ["LRU", "PRESETS", "Ardea", "LRUWide", "Robot", "RobotError", "WaypointRecord", "WheelState", "make_robot"]
 

@@ -34,8 +34,10 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from sim.robots.base import Robot, wrap_angle
+from sim.robots.base import Robot
 from sim.robots.hexacopter_control import HexacopterController, HexGains, SmoothedHeight
+from slam.lie import wrap_angle
+from slam.stereo import DEFAULT_MIN_DEPTH_M
 
 if TYPE_CHECKING:
     from sim.world.terrain import Terrain
@@ -82,6 +84,15 @@ NO_CONTACT = {"contype": 0, "conaffinity": 0}
 class Ardea(Robot):
     preset = "ardea"
     default_hfov_deg = 80.0
+    marker_count = 2  # left and right
+    default_cores = 2  # dual-core (thesis 7.1)
+    default_imu_preset = "adis16407"
+    default_vo_rig = "down"
+    antenna_height_m = 0.3
+    #: Its downward stereo matches from the matcher's minimum depth on, and closer ground
+    #: (standing, taking off, landing) gives SGBM mismatches that put points up to 2 m off.
+    #: The margin covers the camera's height on its legs and the terrain's relief below.
+    min_mapping_height_m = DEFAULT_MIN_DEPTH_M + 0.3
 
     def _build(self) -> None:
         root = self.mjcf_model
@@ -332,6 +343,11 @@ class Ardea(Robot):
             self._relandings = 0
         else:
             self.phase = "done"  # hover over the last goal
+
+    @property
+    def commands_motion(self) -> bool:
+        """Rotors spinning: from take-off until landed (hovering counts)."""
+        return self.phase != "idle" and not self.landed and not self.tipped_over
 
     @property
     def status(self) -> str:

@@ -26,18 +26,19 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import mujoco
 import numpy as np
 from dm_control import mjcf
 
 from sim.robots.route import RouteTracker, WaypointRecord
-from sim.scenario import RobotConfig
 from sim.world.camera_rig import StereoRig
 from sim.world.markers import MarkerSpec, add_marker
+from slam.lie import roll_pitch, yaw_of, yaw_quat
 
-if TYPE_CHECKING:  # the terrain module is only needed for its type here
+if TYPE_CHECKING:  # only needed for types; sim.scenario imports this package to validate robots
+    from sim.scenario import RobotConfig
     from sim.world.terrain import Terrain
 
 __all__ = ["TIP_OVER_RAD", "Robot", "RobotError", "WaypointRecord", "WheelState"]
@@ -58,23 +59,6 @@ class WheelState:
     steer_angle: float  # rad, 0 = rolling along body x, positive turns the wheel to the left
     angular_speed: float  # rad/s about the wheel axle, positive rolls the robot forward
     radius: float  # m
-
-
-def yaw_quat(yaw: float) -> np.ndarray:
-    return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
-
-
-def roll_pitch_yaw(xmat: np.ndarray) -> tuple[float, float, float]:
-    """ZYX Euler angles of a 3x3 rotation matrix (body to world)."""
-    r = np.asarray(xmat).reshape(3, 3)
-    pitch = -math.asin(max(-1.0, min(1.0, r[2, 0])))
-    roll = math.atan2(r[2, 1], r[2, 2])
-    yaw = math.atan2(r[1, 0], r[0, 0])
-    return roll, pitch, yaw
-
-
-def wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def look_xyaxes(direction: Sequence[float], right: Sequence[float]) -> list[float]:
@@ -107,16 +91,40 @@ def facing_quat(normal: Sequence[float], up_hint: Sequence[float] = (0.0, 0.0, 1
 
 class Robot(ABC):
     """Base of all robot presets. Subclasses implement :meth:`_build`,
-    :meth:`_footprint`, :meth:`_bind` and :meth:`_control`."""
+    :meth:`_footprint`, :meth:`_bind` and :meth:`_control`, and set the class
+    attributes below: what differs between robot types is said here and in the
+    presets, and the scenario checks, the run loop and the on-board stack ask the
+    robot's class instead of testing which type it is."""
 
-    preset: str = ""
-    default_hfov_deg: float = 60.0
+    preset: ClassVar[str] = ""
+    default_hfov_deg: ClassVar[float] = 60.0
+    #: AprilTags the robot carries (a scenario's ``tag_ids`` must list this many).
+    marker_count: ClassVar[int]
+    #: Cores of the on-board computer unless ``computer.cores`` says otherwise (thesis 7.1).
+    default_cores: ClassVar[int]
+    #: IMU model (a key of ``sim.world.sensors.IMU_PRESETS``) unless ``imu.preset`` says otherwise (thesis 7.1).
+    default_imu_preset: ClassVar[str]
+    #: Stereo rig whose images feed the visual odometry unless ``slam.vo_rig`` says otherwise.
+    default_vo_rig: ClassVar[str]
+    #: Wheel encoders: the run turns :meth:`wheel_states` into wheel odometry, which the filter fuses.
+    has_wheel_odometry: ClassVar[bool] = False
+    #: Height of the radio antenna above the body origin (m), for the network's line of sight.
+    antenna_height_m: ClassVar[float]
+    #: Map only above this height over the take-off point (filter estimate, m); None: always.
+    min_mapping_height_m: ClassVar[float | None] = None
+
+    @classmethod
+    def check_config(cls, cfg: RobotConfig) -> None:
+        """Raise ``ValueError`` for what the scenario's ``cfg`` asks of this robot type
+        that it cannot do (:class:`sim.scenario.RobotConfig` validation calls this)."""
+        if cfg.tag_ids is not None and len(cfg.tag_ids) != cls.marker_count:
+            raise ValueError(f"preset {cfg.preset} carries {cls.marker_count} markers, got {len(cfg.tag_ids)} tag_ids")
 
     def __init__(self, cfg: RobotConfig, tag_ids: Sequence[int]):
         tag_ids = [int(t) for t in tag_ids]
-        if len(tag_ids) != cfg.marker_count:
+        if len(tag_ids) != self.marker_count:
             raise RobotError(
-                f"robot {cfg.name} (preset {cfg.preset}) carries {cfg.marker_count} markers, got tag_ids {tag_ids}"
+                f"robot {cfg.name} (preset {cfg.preset}) carries {self.marker_count} markers, got tag_ids {tag_ids}"
             )
         self.name: str = cfg.name
         self.cfg: RobotConfig = cfg
@@ -258,7 +266,9 @@ class Robot(ABC):
         return qv[:3].copy(), qv[3:].copy()
 
     def roll_pitch_yaw(self) -> tuple[float, float, float]:
-        return roll_pitch_yaw(self._require_bound().site_xmat[self._imu_id])
+        """ZYX Euler angles of the body (IMU site) in the world."""
+        R = self._require_bound().site_xmat[self._imu_id].reshape(3, 3)
+        return (*roll_pitch(R), yaw_of(R))
 
     def wheel_states(self) -> list[WheelState]:
         return []
@@ -292,6 +302,13 @@ class Robot(ABC):
     @property
     def finished(self) -> bool:
         return self.phase in ("done", "tipped over")
+
+    @property
+    @abstractmethod
+    def commands_motion(self) -> bool:
+        """Whether the robot's own controller commands motion now (wheels driven, rotors
+        spinning): what its computer knows, handed to the estimator's rest test
+        (slam/rest.py), since a quiet IMU at constant velocity looks like rest."""
 
     @property
     def status(self) -> str:

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter
 
+from slam.lie import vee
+
 GRAVITY = 9.81
 
 
@@ -45,10 +47,6 @@ def mixer_matrix(rotor_xy: np.ndarray, spin: np.ndarray, yaw_coeff: float) -> np
     """
     rotor_xy = np.asarray(rotor_xy, float)
     return np.vstack([np.ones(len(rotor_xy)), rotor_xy[:, 1], -rotor_xy[:, 0], yaw_coeff * np.asarray(spin, float)])
-
-
-def _vee(m: np.ndarray) -> np.ndarray:
-    return np.array([m[2, 1], m[0, 2], m[1, 0]])
 
 
 def _cross(a, b) -> np.ndarray:
@@ -118,7 +116,7 @@ class HexacopterController:
         return force, np.column_stack([x_b, y_b, z_b])
 
     def torques(self, rot: np.ndarray, omega_body: np.ndarray, rot_des: np.ndarray, yaw_rate_ff: float = 0.0) -> np.ndarray:
-        e_r = 0.5 * _vee(rot_des.T @ rot - rot.T @ rot_des)
+        e_r = 0.5 * vee(rot_des.T @ rot - rot.T @ rot_des)
         omega_des = rot.T @ np.array([0.0, 0.0, yaw_rate_ff])
         e_w = omega_body - omega_des
         return -self._kr @ e_r - self._kw @ e_w + _cross(omega_body, self.inertia @ omega_body)

@@ -39,10 +39,12 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from sim.robots.base import Robot, WheelState, wrap_angle
+from sim.robots.base import Robot, WheelState
 from sim.robots.rover_control import DriveGains, drive_command, wheel_commands
+from slam.lie import wrap_angle
 
 if TYPE_CHECKING:
+    from sim.scenario import RobotConfig
     from sim.world.terrain import Terrain
 
 WHEEL_RADIUS_M = 0.15
@@ -80,6 +82,22 @@ class LRU(Robot):
 
     preset = "lru"
     default_hfov_deg = 50.6
+    marker_count = len(MARKER_AZIMUTHS_DEG)
+    default_cores = 4  # quad-core i7 (thesis 7.1)
+    default_imu_preset = "xsens_mti10"
+    default_vo_rig = "head"
+    has_wheel_odometry = True
+    antenna_height_m = 1.6  # on the mast
+
+    @classmethod
+    def check_config(cls, cfg: RobotConfig) -> None:
+        """Waypoint altitudes and landing are for the hexacopter."""
+        bad = [i for i, w in enumerate(cfg.route.waypoints) if w.altitude_m is not None]
+        if bad:
+            raise ValueError(f"altitude_m is for the hexacopter only; rover waypoints {bad} have one")
+        if cfg.route.land:
+            raise ValueError("route.land is for the hexacopter only")
+        super().check_config(cfg)
 
     def _build(self) -> None:
         root = self.mjcf_model
@@ -207,6 +225,11 @@ class LRU(Robot):
 
     def _stop(self) -> None:
         self._apply(0.0, 0.0)
+
+    @property
+    def commands_motion(self) -> bool:
+        """Wheels driven: on a leg (scans turn only the head; the body stands)."""
+        return self.phase == "drive" and not self.tipped_over
 
     def _begin_next(self, t: float, xy: np.ndarray) -> None:
         if self.route.done:

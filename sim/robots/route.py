@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sim.scenario import RouteConfig, WaypointConfig
+if TYPE_CHECKING:  # sim.scenario imports this package to validate robots
+    from sim.scenario import RouteConfig, WaypointConfig
 
 PROGRESS_EPS_M = 0.05  # getting closer by less than this is not progress
 PROGRESS_EPS_RAD = math.radians(10)  # nor is turning towards the waypoint by less than this
@@ -64,10 +66,6 @@ class RouteTracker:
         self.deadline = t + TIMEOUT_FACTOR * self.leg_length / self.cfg.speed_mps + TIMEOUT_SLACK_S
         self._best = math.inf
         self._best_heading = math.inf
-        self._best_t = t
-
-    def pause(self, t: float) -> None:
-        """Reset the no-progress clock (e.g. during a deliberate stop)."""
         self._best_t = t
 
     def check(self, t: float, xy, heading_error: float | None = None) -> str | None:

@@ -13,6 +13,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from slam.lie import wrap_angle
+
 
 @dataclass(frozen=True)
 class DriveGains:
@@ -29,7 +31,7 @@ def drive_command(
     """Forward speed and yaw rate that turn towards ``goal`` and drive there."""
     dx, dy = float(goal[0]) - float(xy[0]), float(goal[1]) - float(xy[1])
     dist = math.hypot(dx, dy)
-    err = (math.atan2(dy, dx) - yaw + math.pi) % (2 * math.pi) - math.pi
+    err = wrap_angle(math.atan2(dy, dx) - yaw)
     w = max(-gains.max_yaw_rate, min(gains.max_yaw_rate, gains.heading_gain * err))
     v = speed * max(0.0, 1.0 - abs(err) / gains.turn_in_place_rad)
     v = min(v, max(gains.min_approach_speed, gains.approach_gain * dist))

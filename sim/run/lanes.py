@@ -1,4 +1,4 @@
-"""Scheduler lanes: each robot's on-board computer as SimPy resources (design notes §2.4).
+"""Scheduler lanes: each robot's on-board computer as SimPy resources (thesis 3.3: real-time and background work on each robot's computer).
 
 A lane has ``cores`` CPU cores (a ``simpy.PriorityResource``) and, like the thesis's
 robots (7.1), optionally an FPGA that runs dense stereo matching. Sensor data becomes

@@ -1,4 +1,4 @@
-"""One robot's on-board SLAM pipeline as lane jobs (design notes §2.4).
+"""One robot's on-board SLAM pipeline as lane jobs (docs/architecture.md, "One run").
 
 Sensor data from the run loop become jobs on the robot's lane, in the order its
 computer would process them: every IMU sample a ``strapdown`` job, every wheel
@@ -24,20 +24,23 @@ import numpy as np
 
 from comms import Delivery, Network
 from sim.robots.base import Robot
+from sim.run.faults import measurement_faults
 from sim.run.lanes import Lane, Priority
-from sim.scenario import MappingConfig, Scenario, SlamConfig
+from sim.scenario import MappingConfig, Scenario, SlamConfig, slam_kwargs
+from sim.seeding import RandomStreams
 from sim.tools.marker_lut import load_tables
 from sim.world.camera_rig import StereoRig
 from sim.world.sensors import ImuSpec
 from slam.agent import Agent, AgentParams, Outgoing, TeamMarker
 from slam.filter import FilterParams
-from slam.graph import GraphParams, Topology
+from slam.graph import GraphParams
+from slam.health import HealthParams
 from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
-from slam.markers import UncertaintyModel
-from slam.matcher import MatcherParams, MatchMode
+from slam.matcher import MatcherParams
 from slam.obstacles import ObstacleParams
-from slam.stereo import DEFAULT_MIN_DEPTH_M, StereoCalibration, depth_error
+from slam.rest import RestParams
+from slam.stereo import StereoCalibration, depth_error
 from slam.submap import SubmapParams
 from slam.vo import StereoVO, VoResult
 
@@ -47,11 +50,6 @@ MUJOCO_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 #: 0.5 s of samples has a noise of a few thousandths of a degree; the rest is margin for
 #: a robot that is not perfectly still (motors idling, a settling suspension).
 RESTING_TILT_STD = math.radians(0.2)
-#: An aerial robot maps only this high above its take-off point (filter estimate): its
-#: downward stereo matches from the matcher's minimum depth on, and closer ground
-#: (standing, taking off, landing) gives SGBM mismatches that put points up to 2 m off.
-#: The margin covers the camera's height on its legs and the terrain's relief below.
-AERIAL_MAPPING_HEIGHT_M = DEFAULT_MIN_DEPTH_M + 0.3
 
 
 def filter_params(spec: ImuSpec, gravity: float) -> FilterParams:
@@ -74,20 +72,7 @@ def filter_params(spec: ImuSpec, gravity: float) -> FilterParams:
 
 def local_mapper(robot: str, calib: StereoCalibration, cfg: MappingConfig) -> LocalMapper:
     """The robot's mapping from its scenario section (thesis 5.1)."""
-    obstacles = ObstacleParams(
-        step_height_m=cfg.step_height_m,
-        max_slope_rad=math.radians(cfg.max_slope_deg),
-        window_cells=cfg.window_cells,
-        max_error_m=cfg.max_depth_error_m,
-    )
-    submaps = SubmapParams(
-        point_resolution_m=cfg.point_resolution_m,
-        voxel_resolution_m=cfg.voxel_resolution_m,
-        max_depth_error_m=cfg.max_depth_error_m,
-        max_position_std_m=cfg.submap_position_std_m,
-        max_distance_m=cfg.submap_distance_m,
-    )
-    return LocalMapper(robot, calib, obstacles, submaps)
+    return LocalMapper(robot, calib, ObstacleParams(**slam_kwargs(ObstacleParams, cfg)), SubmapParams(**slam_kwargs(SubmapParams, cfg)))
 
 
 def matcher_params(cfg: SlamConfig, calib: StereoCalibration, seed: int) -> MatcherParams | None:
@@ -96,34 +81,16 @@ def matcher_params(cfg: SlamConfig, calib: StereoCalibration, seed: int) -> Matc
     m = cfg.matching
     if not (m.enabled and cfg.mapping.enabled and cfg.graph.enabled):
         return None
-    return MatcherParams(
-        mode=MatchMode(m.mode),
-        min_overlap_m2=m.min_overlap_m2,
-        stereo_error_m=float(depth_error(m.stereo_error_depth_m, calib)),
-        sigma_scale=m.sigma_scale,
-        sigma_bound=m.sigma_bound,
-        descriptor_radius_m=m.descriptor_radius_m,
-        max_descriptor_distance=m.max_descriptor_distance,
-        max_icp_rmse_m=m.max_icp_rmse_m,
-        seed=seed,
-    )
+    return MatcherParams(**slam_kwargs(MatcherParams, m), stereo_error_m=float(depth_error(m.stereo_error_depth_m, calib)), seed=seed)
 
 
 def agent_params(cfg: SlamConfig, matching: MatcherParams | None = None, marker_tables: dict | None = None) -> AgentParams:
     """The agent's parameters from the scenario's ``slam`` section."""
-    g, d = cfg.graph, cfg.detections
     return AgentParams(
+        **slam_kwargs(AgentParams, cfg.graph, cfg.detections),
         matching=matching,
         marker_tables=marker_tables or {},
-        graph=GraphParams(topology=Topology(g.topology), cauchy_c=g.cauchy_c),
-        uncertainty=UncertaintyModel(d.uncertainty),
-        detection_interval_s=d.min_interval_s,
-        max_detection_distance_m=d.max_distance_m,
-        max_ambiguity=d.max_ambiguity,
-        max_target_tilt_rad=math.radians(d.max_tilt_deg),
-        pose_period_s=g.pose_period_s,
-        buffer_horizon_s=g.pose_buffer_s,
-        covariance_period_s=g.covariance_period_s,
+        graph=GraphParams(**slam_kwargs(GraphParams, cfg.graph)),
     )
 
 
@@ -172,13 +139,23 @@ class SlamLog:
 class OnboardStack:
     """Feeds a robot's sensors into its :class:`LocalEstimator` through its lane."""
 
-    def __init__(self, scenario: Scenario, robot: Robot, lane: Lane, imu_spec: ImuSpec, gravity: float, markers: list[TeamMarker]):
+    def __init__(
+        self,
+        scenario: Scenario,
+        robot: Robot,
+        lane: Lane,
+        imu_spec: ImuSpec,
+        gravity: float,
+        markers: list[TeamMarker],
+        streams: RandomStreams,
+    ):
         cfg = scenario.slam
         self.robot = robot
         self.lane = lane
         self.slam_cfg = cfg
-        self.use_odometry = cfg.wheel_odometry and not robot.cfg.is_aerial
-        rig_name = cfg.vo_rig or ("down" if robot.cfg.is_aerial else "head")
+        self.use_odometry = cfg.wheel_odometry and robot.has_wheel_odometry
+        self.odometry_noise = slam_kwargs(LocalEstimator.on_wheel_odometry, cfg)  # the std the filter assumes
+        rig_name = cfg.vo_rig or robot.default_vo_rig
         rigs = {rig.name: rig for rig in robot.stereo_rigs}
         if rig_name not in rigs:
             raise ValueError(f"slam.vo_rig {rig_name!r} is not a stereo rig of {robot.name}; rigs: {sorted(rigs)}")
@@ -190,15 +167,17 @@ class OnboardStack:
             init_time=robot.cfg.route.start_delay_s,
             rest_window=cfg.initial_rest_s,
             frame_switch_distance=None if mapping.enabled else cfg.frame_switch_distance_m,
+            rest_params=RestParams(**slam_kwargs(RestParams, cfg)),
+            health_params=HealthParams(**slam_kwargs(HealthParams, cfg.health)),
         )
         self.mapper = local_mapper(robot.name, calibration(self.vo_rig), mapping) if mapping.enabled else None
         team = [r.name for r in scenario.robots]
-        seed = int(np.random.SeedSequence([scenario.seed, team.index(robot.name), 6]).generate_state(1)[0])
-        matching = matcher_params(cfg, calibration(self.vo_rig), seed)
+        matching = matcher_params(cfg, calibration(self.vo_rig), streams.integer_seed("matcher", robot.name))
         tables = None
         if cfg.graph.enabled and cfg.detections.enabled and cfg.detections.uncertainty in ("lut", "lut_online"):
             tables = load_tables(robot.stereo_rigs, {m.size_m for m in markers})
-        self.agent = Agent(robot.name, team, markers, self.estimator, self.mapper, agent_params(cfg, matching, tables))
+        self.faults = measurement_faults(scenario, robot.name, streams)  # the scenario's wrong detections and matches
+        self.agent = Agent(robot.name, team, markers, self.estimator, self.mapper, agent_params(cfg, matching, tables), self.faults)
         self.exchange = cfg.graph.enabled
         self.detect_markers = cfg.graph.enabled and cfg.detections.enabled
         self.network: Network | None = None
@@ -281,15 +260,17 @@ class OnboardStack:
     # ------------------------------------------------------------------ sensor events
 
     def imu(self, now: float, accel: np.ndarray, gyro: np.ndarray) -> None:
-        self.lane.submit("strapdown", work=lambda: self.agent.on_imu(now, accel, gyro), on_done=lambda out, t: self._send(out))
+        moving = self.robot.commands_motion  # the controller's state at the sample, as the robot's computer knows it
+
+        def work():
+            self.estimator.on_motion_command(moving)
+            return self.agent.on_imu(now, accel, gyro)
+
+        self.lane.submit("strapdown", work=work, on_done=lambda out, t: self._send(out))
 
     def wheel_odometry(self, v_body: np.ndarray) -> None:
         if self.use_odometry:
-            cfg = self.slam_cfg
-            self.lane.submit(
-                "filter_update",
-                work=lambda: self.estimator.on_wheel_odometry(v_body, cfg.wheel_speed_std_mps, cfg.wheel_yaw_rate_std_rps, cfg.wheel_vz_std_mps),
-            )
+            self.lane.submit("filter_update", work=lambda: self.estimator.on_wheel_odometry(v_body, **self.odometry_noise))
 
     def capture(self, frame_id: int, now: float, T_body_cam: np.ndarray) -> None:
         """Image trigger of the VO rig: the filter clones its state."""
@@ -328,8 +309,9 @@ class OnboardStack:
         frame = est.last_frame
         if images is None or frame is None or frame.frame_id != result.frame_id:
             return
-        if self.robot.cfg.is_aerial and (est.T_first_current @ est.in_frame(frame.T_local_body, frame.frame_index))[2, 3] < AERIAL_MAPPING_HEIGHT_M:
-            return  # on the ground or taking off: the downward stereo sees the ground closer than it can match
+        floor = self.robot.min_mapping_height_m
+        if floor is not None and (est.T_first_current @ est.in_frame(frame.T_local_body, frame.frame_index))[2, 3] < floor:
+            return  # e.g. a hexacopter on the ground or taking off: its downward stereo sees the ground closer than it can match
         self.lane.submit("mapping", work=lambda: self._map(frame, *images), on_done=lambda _, t_done: self._check_partition(t_done))
 
     def _map(self, frame: FramePose, depth: np.ndarray, left: np.ndarray) -> None:

@@ -1,6 +1,6 @@
 """The run loop: one SimPy environment drives physics, sensors, controllers and lanes.
 
-The physics process is the master clock (design notes §2.3). Each control tick it lets
+The physics process is the master clock (docs/architecture.md, "One run"). Each control tick it lets
 every robot's controller set its actuators, steps MuJoCo, and then samples the sensors
 that are due on this tick (IMU, wheel odometry, stereo cameras, ground truth).
 Sampling from the clock, not from separate SimPy processes, fixes the order of
@@ -43,7 +43,7 @@ GROUND_TRUTH_RATE_HZ = 50.0
 #: the ground, come to rest on it (a tilted ARDEA rocks on its legs for most of a second):
 #: the run starts with every robot resting, as the filters' initialisation assumes.
 SETTLE_S = 2.0
-ANTENNA_HEIGHT_M = {"rover": 1.6, "aerial": 0.3, "lander": 1.8}  # above the body origin / lander base
+LANDER_ANTENNA_HEIGHT_M = 1.8  # above the lander base; a robot's is its class's ``antenna_height_m``
 DEPTH_BINS_M = (0.0, 2.0, 4.0, 6.0, 10.0, math.inf)
 DEPTH_SAMPLE_STRIDE = 2  # score every 2nd pixel in each direction
 
@@ -250,19 +250,19 @@ class Run:
 
     def _runtime(self, robot: Robot) -> RobotRuntime:
         cfg = robot.cfg
-        cores = cfg.computer.cores or (2 if cfg.is_aerial else 4)
+        cores = cfg.computer.cores or robot.default_cores
         lane = Lane(self.env, robot.name, cores, cfg.computer.fpga, ComputeModel(self.scenario.compute), self.scenario.compute.max_queue)
-        preset = cfg.imu.preset or ("adis16407" if cfg.is_aerial else "xsens_mti10")
+        preset = cfg.imu.preset or robot.default_imu_preset
         imu = ImuModel(IMU_PRESETS[preset], cfg.imu.rate_hz, self.streams.rng("imu", robot.name))
         odometry = None
-        if not cfg.is_aerial:
+        if robot.has_wheel_odometry:
             odometry = WheelOdometryModel(cfg.wheel_odometry, self.streams.rng("wheel_odometry", robot.name))
         renderers = [StereoRenderer(self.world.model, rig, cfg.camera) for rig in robot.stereo_rigs]
         matchers = [StereoMatcher(calibration(rig)) for rig in robot.stereo_rigs]
         onboard = None
         if self.scenario.slam.enabled:
             gravity = float(-self.world.model.opt.gravity[2])
-            onboard = OnboardStack(self.scenario, robot, lane, IMU_PRESETS[preset], gravity, self.team_markers)
+            onboard = OnboardStack(self.scenario, robot, lane, IMU_PRESETS[preset], gravity, self.team_markers, self.streams)
             if self.recorder is not None:
                 every = self.scenario.output.recording_image_every
                 onboard.on_vo_result = lambda result, r=robot, o=onboard, n=every: (
@@ -293,11 +293,10 @@ class Run:
         out = {}
         for name, runtime in self.robots.items():
             pos, _ = runtime.robot.pose()
-            lift = ANTENNA_HEIGHT_M["aerial" if runtime.robot.cfg.is_aerial else "rover"]
-            out[name] = pos + np.array([0.0, 0.0, lift])
+            out[name] = pos + np.array([0.0, 0.0, runtime.robot.antenna_height_m])
         lander = self.terrain.lander
         if lander is not None:
-            out["lander"] = np.array([*lander.xy, lander.base_z + ANTENNA_HEIGHT_M["lander"]])
+            out["lander"] = np.array([*lander.xy, lander.base_z + LANDER_ANTENNA_HEIGHT_M])
         return out
 
     def line_of_sight(self, a: str, b: str) -> bool:

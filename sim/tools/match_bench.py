@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from sim.tools.rocky_scene import RockyScene
+from slam.lie import yaw_of
 from slam.matcher import MatcherParams, match_pair, prepare
-from slam.registration import yaw_of
 
 # Straight drives through the 20 m rocky scene: (start, end) xy in metres.
 PATHS = [

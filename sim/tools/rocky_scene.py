@@ -19,8 +19,8 @@ from sim.scenario import CameraConfig, TerrainConfig
 from sim.world.camera_rig import StereoRig
 from sim.world.sensors import StereoRenderer
 from sim.world.terrain import add_terrain, generate_terrain
+from slam.lie import rot_z, se3
 from slam.obstacles import ObstacleParams, classify_depth
-from slam.registration import rot_z, transform
 from slam.stereo import StereoCalibration, StereoMatcher
 from slam.submap import Submap, SubmapBuilder, SubmapParams
 
@@ -69,7 +69,7 @@ class RockyScene:
     def head_pose(self, xy, yaw: float) -> np.ndarray:
         """Gravity-aligned head pose (world) at ``xy``, ``HEAD_HEIGHT_M`` above the terrain."""
         z = float(self.terrain.height_at(*xy)) + HEAD_HEIGHT_M
-        return transform(rot_z(yaw), [xy[0], xy[1], z])
+        return se3(rot_z(yaw), [xy[0], xy[1], z])
 
     def view(self, T_world_head: np.ndarray):
         """Grey left image, SGBM depth and the left camera's world pose (OpenCV axes)."""
@@ -79,7 +79,7 @@ class RockyScene:
         mujoco.mj_forward(self.model, self.data)
         frame = self.renderer.render(self.data)
         depth = self.stereo.depth(frame.left, frame.right)
-        T_world_cam = transform(self.data.cam_xmat[self._left].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0]), self.data.cam_xpos[self._left])
+        T_world_cam = se3(self.data.cam_xmat[self._left].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0]), self.data.cam_xpos[self._left])
         return frame.left, depth, T_world_cam
 
     def submap(self, robot: str, index: int, start_xy, end_xy, images: int = 24, yaw_offset: float = 0.0) -> tuple[Submap, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Simulated sensors: IMU noise model, stereo rendering, wheel odometry (issue 2 §5).
+"""Simulated sensors: IMU noise model, stereo rendering, wheel odometry.
 
 - :class:`ImuModel` turns MuJoCo's true specific force and angular rate (its
   ``accelerometer`` already includes gravity; MJCF ``noise`` is metadata only, design
@@ -276,7 +276,7 @@ class _RenderTarget:
         glob = model.vis.global_
         if glob.offwidth < width or glob.offheight < height:
             glob.offwidth, glob.offheight = max(glob.offwidth, width), max(glob.offheight, height)
-        model.vis.quality.offsamples = 0  # no MSAA (design notes §6): read by MjrContext below
+        model.vis.quality.offsamples = 0  # no MSAA (a main render cost on llvmpipe): read by MjrContext below
         self.gl = mujoco.GLContext(width, height)
         self.gl.make_current()
         self.context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)

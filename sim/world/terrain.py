@@ -1,7 +1,7 @@
 """Procedural planetary terrain: heightfield, craters, slope, ridges, rocks, lander, albedo.
 
-Issue 2 §3. Everything is drawn from one ``numpy.random.Generator`` (the scenario's
-``terrain`` stream, design notes §3), split into independent child streams per part,
+Everything is drawn from one ``numpy.random.Generator`` (the scenario's ``terrain``
+stream of :class:`sim.seeding.RandomStreams`), split into independent child streams per part,
 so moving a robot start (``keep_clear``) never changes the heightfield or the texture.
 
 Geometry (world frame, origin at the terrain centre, z up):
@@ -21,7 +21,7 @@ rocks as convex meshes with diameters from a truncated power law N(>D) ~ D^-k (s
 by inverse CDF), half buried; a lander on a flattened pad with an AprilTag 36h11 on a
 side face (thesis 6.2: landers as static landmarks). The regolith albedo is multi-octave
 noise whose octave weights grow slightly with frequency, so that texture survives at
-every scale a 320x240 camera sees between 2 and 6 m (SGBM and VO need it, design notes §6).
+every scale a 320x240 camera sees between 2 and 6 m (SGBM and VO need texture to match).
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ from sim.world.markers import (
     MarkerSpec,
     add_marker,
 )
+from slam.lie import yaw_quat
 
 HFIELD_BASE_M = 1.0  # depth of MuJoCo's hfield box below the lowest terrain point
 MAX_GRID_POINTS = 4097  # per side; finer grids do not fit MuJoCo (or memory) sensibly
@@ -436,10 +437,6 @@ def generate_terrain(cfg: TerrainConfig, rng: np.random.Generator,
     return dataclasses.replace(ground, rocks=_place_rocks(ground.height_at, cfg, rng_rocks, discs))
 
 
-def _yaw_quat(yaw: float) -> list[float]:
-    return [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
-
-
 def _rock_mesh(rock: Rock, albedo_tile_m: float, offset: np.ndarray) -> dict:
     """Mesh attributes: hull faces (outward) and texture coordinates projected along
     (-1, 1, 1), so the regolith texture covers every face at its ground scale."""
@@ -482,7 +479,7 @@ def add_terrain(root: mjcf.RootElement, terrain: Terrain) -> None:
     for i, rock in enumerate(terrain.rocks):
         root.asset.add("mesh", name=f"rock_{i}", **_rock_mesh(rock, tile_m, rock.center[:2] / tile_m))
         root.worldbody.add("geom", name=f"rock_{i}", type="mesh", mesh=f"rock_{i}", material="rock",
-                           pos=rock.center, quat=_yaw_quat(rock.yaw))
+                           pos=rock.center, quat=yaw_quat(rock.yaw).tolist())
 
     if terrain.lander is not None:
         _add_lander(root, terrain.lander)
@@ -504,7 +501,7 @@ def add_terrain(root: mjcf.RootElement, terrain: Terrain) -> None:
 def _add_lander(root: mjcf.RootElement, lander: LanderPlacement) -> None:
     """Static lander body: deck box on four splayed legs with footpads, the tag on a
     backing plate on the deck's +x face."""
-    body = root.worldbody.add("body", name="lander", pos=[*lander.xy, lander.base_z], quat=_yaw_quat(lander.yaw))
+    body = root.worldbody.add("body", name="lander", pos=[*lander.xy, lander.base_z], quat=yaw_quat(lander.yaw).tolist())
     gold, grey = [0.75, 0.6, 0.25, 1], [0.55, 0.55, 0.55, 1]
     dx, dy, dz = LANDER_DECK_HALF
     body.add("geom", name="lander_deck", type="box", size=LANDER_DECK_HALF, pos=[0, 0, LANDER_DECK_Z], rgba=gold)

@@ -1,0 +1,215 @@
+"""What the evaluation reads from a finished run, as typed inputs: the one place that
+reaches into the run's objects (:class:`sim.run.runner.Run`, its robots'
+:class:`sim.run.onboard.OnboardStack`).
+
+Each section of ``metrics.json`` takes its own input, next to :class:`TeamTruth`, the
+simulator's ground truth: :class:`FilterInput` (``robots.<name>.filter``,
+:mod:`sim.evaluation.results_folder`), :class:`SlamInput` (``robots.<name>.slam``,
+:mod:`sim.evaluation.online_slam`), :class:`MapInput` (``robots.<name>.map``,
+:mod:`sim.evaluation.maps`) and :class:`ClosureInput` (``loop_closures``,
+:mod:`sim.evaluation.loop_closures`). The results folder reads each input inside its
+section's guard, so that a failure to read costs that section only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from sim.evaluation.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from sim.run.onboard import OnboardStack
+    from sim.run.runner import Run
+    from sim.scenario import MappingConfig
+    from slam.agent import AgentStats, DetectionRecord
+    from slam.graph import MultiRobotGraph
+    from slam.local_estimator import FrameSwitch
+    from slam.obstacles import RollingObstacleMap
+    from slam.submap import Submap
+    from slam.team_matcher import TeamMatcher
+
+_EMPTY = Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+
+
+@dataclass(frozen=True, eq=False)
+class TeamTruth:
+    """A run's ground truth in the world frame: each robot's body trajectory (robots with
+    at least one sample) and the pose of the landmark (the lander's tag; None without)."""
+
+    robots: dict[str, Trajectory]
+    landmark: np.ndarray | None
+
+    def of(self, robot: str) -> Trajectory:
+        """The robot's trajectory, empty for a robot without ground truth."""
+        return self.robots.get(robot, _EMPTY)
+
+
+@dataclass(frozen=True, eq=False)
+class FilterInput:
+    """The local reference filter's online log (``sim.run.onboard.EstimateLog``, sampled
+    on the ground-truth clock) and its counters."""
+
+    estimate: Trajectory  # in the filter's first frame, frame switches chained
+    position_std: np.ndarray  # (N, 3), in the local frame of the time
+    observable: np.ndarray  # (N, 5): roll, pitch, body velocity
+    observable_true: np.ndarray
+    observable_cov: np.ndarray  # (N, 5, 5)
+    bias: np.ndarray  # (N, 6): accelerometer, gyro
+    bias_true: np.ndarray
+    vo: dict  # LocalEstimator.vo_report(): counts, rejections and failures by reason
+    rest: dict  # LocalEstimator.rest_report(): zero-velocity updates and their intervals
+    frame_switches: int
+
+
+@dataclass(frozen=True, eq=False)
+class SlamInput:
+    """A robot's collaborative SLAM as it ended (its ``slam.agent.Agent``) and what it
+    believed online (``sim.run.onboard.SlamLog``; thesis ch. 8: never re-optimised)."""
+
+    start_t: float | None  # the filter's first estimate: the time of the map frame's truth
+    estimate: Trajectory  # its own pose in its map frame (eq. 4.6)
+    beliefs: dict[str, list[tuple[float, float, np.ndarray]]]  # peer -> (t, t of the estimate, pose in this map)
+    graph: MultiRobotGraph
+    marginals: dict[tuple[str, int], np.ndarray]  # submap origin -> 6x6 covariance
+    stats: AgentStats
+    detections: list[DetectionRecord]
+    submaps_received: int
+
+
+@dataclass(frozen=True, eq=False)
+class MapInput:
+    """A robot's mapping as it ended, its submaps placed in its map frame: by its graph
+    (its peers' submaps included) or, without one, by its filter's chained frame switches."""
+
+    start_t: float | None  # the filter's first estimate: the time of the map frame's truth
+    mapping: MappingConfig
+    own_submaps: list[Submap]  # its finished submaps
+    active_images: int  # images in the submap under construction
+    images_integrated: int
+    placed: list[tuple[Submap, np.ndarray]]  # finished submaps with their origins T_map_submap
+    current: tuple[Submap, np.ndarray] | None  # the submap under construction with its origin, if it has images
+    partitions: list[tuple[float, str]]  # (t, reason) of each new submap
+    rolling: RollingObstacleMap  # in the odometry frame (= the map frame)
+    T_map_body: np.ndarray | None  # the filter's final pose in the map frame (None before its start)
+
+
+@dataclass(frozen=True, eq=False)
+class ClosureInput:
+    """A robot's loop closures (thesis 8.1.2, 8.1.3): its submap matcher (None without
+    matching) and its detections, with the times of its local frames, whose true poses
+    are its submap origins' truth."""
+
+    start_t: float | None  # the filter's first estimate: local frame 0
+    switches: list[FrameSwitch]  # the later local frames
+    matcher: TeamMatcher | None
+    duplicate_closures: int  # closures of a pair already closed, ignored
+    detections: list[DetectionRecord]
+
+
+def _stack(rows: list[np.ndarray], *shape: int) -> np.ndarray:
+    return np.stack(rows) if rows else np.zeros((0, *shape))
+
+
+def _start_t(onboard: OnboardStack) -> float | None:
+    return onboard.log.t[0] if onboard.log.t else None
+
+
+def lander_tag_pose(model, data) -> np.ndarray | None:
+    """World pose of the lander's tag (the landmark's frame), or None without a lander."""
+    for g in range(model.ngeom):
+        if model.geom(g).name.endswith("lander_tag"):
+            T = np.eye(4)
+            T[:3, :3] = data.geom_xmat[g].reshape(3, 3)
+            T[:3, 3] = data.geom_xpos[g]
+            return T
+    return None
+
+
+def team_truth(run: Run) -> TeamTruth:
+    robots = {n: Trajectory.from_pose_rows(r.log.gt_t, r.log.gt_pose) for n, r in run.robots.items() if r.log.gt_pose}
+    return TeamTruth(robots, lander_tag_pose(run.world.model, run.world.data))
+
+
+def filter_input(onboard: OnboardStack) -> FilterInput:
+    log, estimator = onboard.log, onboard.estimator
+    return FilterInput(
+        estimate=Trajectory.from_lists(log.t, log.pose_first_frame),
+        position_std=_stack(log.position_std, 3),
+        observable=_stack(log.observable, 5),
+        observable_true=_stack(log.observable_true, 5),
+        observable_cov=_stack(log.observable_cov, 5, 5),
+        bias=_stack(log.bias, 6),
+        bias_true=_stack(log.bias_true, 6),
+        vo=estimator.vo_report(),
+        rest=estimator.rest_report(),
+        frame_switches=len(estimator.switches),
+    )
+
+
+def health_report(onboard: OnboardStack, t_end: float) -> dict:
+    """The estimator's verdict on itself at the end of the run (slam/health.py)."""
+    return onboard.estimator.health_report(t_end)
+
+
+def slam_input(onboard: OnboardStack) -> SlamInput | None:
+    """None for a robot without the graph (``slam.graph.enabled`` off)."""
+    if not onboard.exchange:
+        return None
+    agent, slog = onboard.agent, onboard.slam_log
+    return SlamInput(
+        start_t=_start_t(onboard),
+        estimate=Trajectory.from_lists(slog.t, slog.pose),
+        beliefs=slog.beliefs,
+        graph=agent.graph,
+        marginals=agent.marginals,
+        stats=agent.stats,
+        detections=agent.detections,
+        submaps_received=len(agent.peer_submaps),
+    )
+
+
+def map_input(onboard: OnboardStack) -> MapInput | None:
+    """None for a robot without mapping (``slam.mapping.enabled`` off)."""
+    mapper, estimator = onboard.mapper, onboard.estimator
+    if mapper is None:
+        return None
+    if onboard.exchange:
+        placed, current = onboard.agent.placed_submaps(), onboard.agent.active_submap()
+    else:
+        frames = estimator.frame_origins  # T_map_frame of every local frame: the submap origins
+        placed = [(s, frames[s.frame_index]) for s in mapper.submaps]
+        active = mapper.builder.current()
+        current = (active, frames[active.frame_index]) if active.images else None
+    return MapInput(
+        start_t=_start_t(onboard),
+        mapping=onboard.slam_cfg.mapping,
+        own_submaps=list(mapper.submaps),
+        active_images=mapper.builder.images,
+        images_integrated=mapper.images,
+        placed=placed,
+        current=current,
+        partitions=list(onboard.partitions),
+        rolling=mapper.rolling,
+        T_map_body=estimator.T_first_current @ estimator.filter.pose() if estimator.initialised else None,
+    )
+
+
+def closure_inputs(run: Run) -> dict[str, ClosureInput]:
+    """Every robot with the graph."""
+    out = {}
+    for name, runtime in run.robots.items():
+        onboard = runtime.onboard
+        if onboard is None or not onboard.exchange:
+            continue
+        agent = onboard.agent
+        out[name] = ClosureInput(
+            start_t=_start_t(onboard),
+            switches=list(onboard.estimator.switches),
+            matcher=agent.matcher,
+            duplicate_closures=agent.stats.duplicate_closures,
+            detections=agent.detections,
+        )
+    return out
