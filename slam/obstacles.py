@@ -12,7 +12,12 @@ Pipeline per depth image (``classify_depth``)
    gravity frame and eq. 5.1 gives the minimal slope of the hidden region between them,
    ``s_min = (p_z - q_z) / |q_xy - p_xy|``. If it exceeds ``tan(max_slope_rad)`` the near
    pixel (the rim) is a negative edge. A far side that is higher (an occluding step) gives
-   ``s_min < 0`` and is left to the step detection.
+   ``s_min < 0`` and is left to the step detection. A drop ``p_z - q_z`` no higher than
+   ``step_height_m`` is no cliff, however steep, and a far point beyond the mapping range
+   (``max_error_m``, eq. 5.2c) counts as near as its stereo error allows (our additions:
+   the thesis checks the slope alone, which on rough ground flagged every small crest with
+   a 5-10 cm dip behind it, and crests at the range limit against far points metres off;
+   docs/mapping.md).
 2. Stereo-error-adaptive steps on a gravity-aligned 2.5D height map (cells of 0.05 m on the
    lattice ``floor(x / resolution)``, mean height of the points per cell as in the thesis;
    ``CellHeight.MAX`` as a variant). Points whose depth error (eq. 5.2c) exceeds
@@ -45,7 +50,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, cut_far_points, distance_error
+from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, cut_far_points, distance_error, max_depth_for_error
 
 
 class ObstacleException(ValueError):
@@ -184,9 +189,11 @@ def _prepare(
 # --------------------------------------------------------------------------- negative edges
 
 
-def _negative_edges(depth: np.ndarray, pts: np.ndarray, near_ok: np.ndarray, params: ObstacleParams) -> tuple[np.ndarray, np.ndarray]:
-    """Negative edges of a depth image (NaN: no data) with its gravity-frame points (3, H, W);
-    only pixels in ``near_ok`` can be the near side."""
+def _negative_edges(
+    depth: np.ndarray, pts: np.ndarray, near_ok: np.ndarray, camera: np.ndarray, calibration: StereoCalibration, params: ObstacleParams
+) -> tuple[np.ndarray, np.ndarray]:
+    """Negative edges of a depth image (NaN: no data) with its gravity-frame points (3, H, W)
+    and the camera centre in that frame; only pixels in ``near_ok`` can be the near side."""
     h, w = depth.shape
     valid = np.isfinite(depth)
     # top to bottom, all columns at once (thesis 5.1.1): the previous valid pixel above, its row and depth
@@ -206,8 +213,19 @@ def _negative_edges(depth: np.ndarray, pts: np.ndarray, near_ok: np.ndarray, par
     keep = near_ok[nv, c]
     nv, fv, c = nv[keep], fv[keep], c[keep]
     p, q = pts[:, nv, c].astype(float), pts[:, fv, c].astype(float)
+    # a far side beyond the mapping range (eq. 5.2c) is as near as its stereo error allows
+    # (disparity + sqrt(2) Δp): its depth is uncertain by metres there
+    z_q = depth[fv, c].astype(float)
+    z_near = np.where(
+        z_q <= max_depth_for_error(calibration, params.max_error_m, params.pixel_error),
+        z_q,
+        calibration.fb / (calibration.fb / z_q + math.sqrt(2) * params.pixel_error),
+    )
+    q = camera[:, None] + (q - camera[:, None]) * (z_near / z_q)
     with np.errstate(divide="ignore", invalid="ignore"):
         s_min = (p[2] - q[2]) / np.hypot(q[0] - p[0], q[1] - p[1])  # eq. 5.1
+    # a drop no higher than a step the robot drives over is no cliff, however steep (docs/mapping.md)
+    s_min[~((p[2] - q[2] > params.step_height_m) & (z_near > depth[nv, c]))] = np.nan
     min_slope = np.full((h, w), np.nan)
     np.fmax.at(min_slope, (nv, c), s_min)
     with np.errstate(invalid="ignore"):
@@ -222,12 +240,13 @@ def negative_edges(
 
     Returns ``(edges, min_slope)``: a bool (H, W) mask of the near-side pixels whose minimal
     hidden slope ``s_min`` exceeds ``tan(max_slope_rad)``, and ``s_min`` itself at the near-side
-    pixels of all depth jumps (NaN elsewhere; the larger value where a pixel is near side twice).
+    pixels of all depth jumps whose drop exceeds ``step_height_m`` (NaN elsewhere; the larger
+    value where a pixel is near side twice).
     Near pixels beyond the far cut (``max_error_m``) are not classified.
     """
     params = params or ObstacleParams()
-    depth_e, pts, in_range, _, _ = _prepare(depth, calibration, T_gravity_cam, params)
-    return _negative_edges(depth_e, pts, in_range, params)
+    depth_e, pts, in_range, _, t = _prepare(depth, calibration, T_gravity_cam, params)
+    return _negative_edges(depth_e, pts, in_range, t, calibration, params)
 
 
 # --------------------------------------------------------------------------- steps
@@ -300,7 +319,7 @@ def classify_depth(
     """
     params = params or ObstacleParams()
     depth_e, pts, in_range, R, t = _prepare(depth, calibration, T_gravity_cam, params)
-    edges, min_slope = _negative_edges(depth_e, pts, in_range, params)
+    edges, min_slope = _negative_edges(depth_e, pts, in_range, t, calibration, params)
 
     origin, height, h_diff, threshold, flat = _step_cells(np.compress(in_range.ravel(), pts.reshape(3, -1), axis=1), R, t, calibration, params)
     traversability = h_diff / threshold

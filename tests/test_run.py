@@ -241,7 +241,7 @@ def test_submap_along_true_poses_matches_the_terrain(monkeypatch):
         builder.integrate(depth, T_world_cam, classify_depth(depth, calib, T_world_cam).pixel_obstacles, left, t)
     submap = builder.current()
     assert submap.images > 20
-    accuracy = map_quality(submap.points, submap.obstacle, simulation.terrain)["accuracy"]
+    accuracy = map_quality(submap.points, submap.obstacle, simulation.terrain).accuracy
     assert accuracy["median_m"] < 0.02 and accuracy["within_0_1_m"] > 0.98, accuracy
     terrain = simulation.terrain
     occupied = submap.voxels.occupied_centers()

@@ -26,7 +26,6 @@ if TYPE_CHECKING:
     from sim.scenario import MappingConfig
     from slam.agent import AgentStats, DetectionRecord
     from slam.graph import MultiRobotGraph
-    from slam.local_estimator import FrameSwitch
     from slam.obstacles import RollingObstacleMap
     from slam.submap import Submap
     from slam.team_matcher import TeamMatcher
@@ -37,10 +36,12 @@ _EMPTY = Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
 @dataclass(frozen=True, eq=False)
 class TeamTruth:
     """A run's ground truth in the world frame: each robot's body trajectory (robots with
-    at least one sample) and the pose of the landmark (the lander's tag; None without)."""
+    at least one sample), the pose of the landmark (the lander's tag; None without), and
+    each robot's horizontal reach around its body origin (``Robot.body_radius_m``)."""
 
     robots: dict[str, Trajectory]
     landmark: np.ndarray | None
+    body_radius_m: dict[str, float]
 
     def of(self, robot: str) -> Trajectory:
         """The robot's trajectory, empty for a robot without ground truth."""
@@ -85,6 +86,7 @@ class MapInput:
     (its peers' submaps included) or, without one, by its filter's chained frame switches."""
 
     start_t: float | None  # the filter's first estimate: the time of the map frame's truth
+    switch_times: dict[int, float]  # local frame index -> time of the switch into it (submap origins' truth)
     mapping: MappingConfig
     own_submaps: list[Submap]  # its finished submaps
     active_images: int  # images in the submap under construction
@@ -103,7 +105,7 @@ class ClosureInput:
     are its submap origins' truth."""
 
     start_t: float | None  # the filter's first estimate: local frame 0
-    switches: list[FrameSwitch]  # the later local frames
+    switch_times: dict[int, float]  # the later local frames: index -> time of the switch
     matcher: TeamMatcher | None
     duplicate_closures: int  # closures of a pair already closed, ignored
     detections: list[DetectionRecord]
@@ -115,6 +117,10 @@ def _stack(rows: list[np.ndarray], *shape: int) -> np.ndarray:
 
 def _start_t(onboard: OnboardStack) -> float | None:
     return onboard.log.t[0] if onboard.log.t else None
+
+
+def _switch_times(onboard: OnboardStack) -> dict[int, float]:
+    return {s.frame_index: s.t for s in onboard.estimator.switches}
 
 
 def lander_tag_pose(model, data) -> np.ndarray | None:
@@ -130,7 +136,8 @@ def lander_tag_pose(model, data) -> np.ndarray | None:
 
 def team_truth(run: Run) -> TeamTruth:
     robots = {n: Trajectory.from_pose_rows(r.log.gt_t, r.log.gt_pose) for n, r in run.robots.items() if r.log.gt_pose}
-    return TeamTruth(robots, lander_tag_pose(run.world.model, run.world.data))
+    radii = {n: r.robot.body_radius_m for n, r in run.robots.items()}
+    return TeamTruth(robots, lander_tag_pose(run.world.model, run.world.data), radii)
 
 
 def filter_input(onboard: OnboardStack) -> FilterInput:
@@ -185,6 +192,7 @@ def map_input(onboard: OnboardStack) -> MapInput | None:
         current = (active, frames[active.frame_index]) if active.images else None
     return MapInput(
         start_t=_start_t(onboard),
+        switch_times=_switch_times(onboard),
         mapping=onboard.slam_cfg.mapping,
         own_submaps=list(mapper.submaps),
         active_images=mapper.builder.images,
@@ -207,7 +215,7 @@ def closure_inputs(run: Run) -> dict[str, ClosureInput]:
         agent = onboard.agent
         out[name] = ClosureInput(
             start_t=_start_t(onboard),
-            switches=list(onboard.estimator.switches),
+            switch_times=_switch_times(onboard),
             matcher=agent.matcher,
             duplicate_closures=agent.stats.duplicate_closures,
             detections=agent.detections,

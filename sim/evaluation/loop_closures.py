@@ -26,16 +26,6 @@ SIGMA_LEVELS = (1, 2, 3)
 ERROR_STATISTICS = (StatisticsType.MEDIAN, StatisticsType.P90, StatisticsType.MAX)
 
 
-def origin_truth(closures: ClosureInput, truth: trajectory.Trajectory) -> dict[int, np.ndarray]:
-    """Frame index -> true world pose of that local frame's origin (gravity-aligned)."""
-    if closures.start_t is None:
-        return {}
-    out = {0: trajectory.gravity_aligned(truth.at(closures.start_t))}
-    for s in closures.switches:
-        out[s.frame_index] = trajectory.gravity_aligned(truth.at(s.t))
-    return out
-
-
 def calibration(normalised: np.ndarray) -> dict[str, float]:
     """Share of |error| / sigma at most 1, 2, 3 (a Gaussian: 68 / 95 / 99.7 % per component)."""
     a = np.abs(np.asarray(normalised, float))
@@ -112,7 +102,7 @@ def loop_closure_section(closures: dict[str, ClosureInput], truth: TeamTruth) ->
     closures = {n: c for n, c in closures.items() if n in truth.robots}
     if not closures:
         return None
-    origins = {n: origin_truth(c, truth.robots[n]) for n, c in closures.items()}
+    origins = {n: trajectory.frame_origins_truth(c.start_t, c.switch_times, truth.robots[n]) for n, c in closures.items()}
     robots = {}
     for name, c in closures.items():
         robots[name] = {"matches": match_metrics(c, origins), "detections": detection_calibration(name, c, truth)}

@@ -119,14 +119,90 @@ def true_obstacle_cells(terrain: Terrain, origin: np.ndarray, shape: tuple[int, 
     return obstacles | lander
 
 
-def map_quality(points_world: np.ndarray, obstacle: np.ndarray, terrain: Terrain, params: MapQualityParams | None = None) -> dict:
+@dataclass(frozen=True, eq=False)
+class ObstacleScore:
+    """Obstacle cells of a map against the true ones (cells of ``obstacle_cell_m``; centres
+    (k, 2) in the world for the plot): flagged and true (``tp``), flagged only (``fp``), true
+    only (``missed``, true cells seen by the map that no flagged cell is next to)."""
+
+    precision: float | None
+    recall: float | None
+    mapped_cells: int
+    true_cells_seen: int
+    points_on_robots: int
+    obstacle_points_on_robots: int
+    tp_xy: np.ndarray
+    fp_xy: np.ndarray
+    missed_xy: np.ndarray
+
+    def metrics(self) -> dict:
+        keys = ("precision", "recall", "mapped_cells", "true_cells_seen", "points_on_robots", "obstacle_points_on_robots")
+        return {k: getattr(self, k) for k in keys}
+
+
+@dataclass(frozen=True, eq=False)
+class MapQuality:
+    accuracy: dict
+    completeness: dict
+    obstacles: ObstacleScore
+
+    def metrics(self) -> dict:
+        return {"accuracy": self.accuracy, "completeness": self.completeness, "obstacles": self.obstacles.metrics()}
+
+
+def score_obstacles(
+    pts: np.ndarray, obstacle: np.ndarray, terrain: Terrain, params: MapQualityParams, on_robots: np.ndarray | None = None
+) -> ObstacleScore:
+    """Precision and recall of the obstacle flags of world points (n, 3) within the cells
+    the points cover, with one cell of tolerance. Points ``on_robots`` (seen on a robot,
+    which the static truth does not hold) are neither scored nor count as covering a cell."""
+    on_robots = np.zeros(len(pts), bool) if on_robots is None else np.asarray(on_robots, bool)
+    oc = params.obstacle_cell_m
+    cells = np.floor(pts[~on_robots, :2] / oc).astype(np.int64)
+    flagged = obstacle[~on_robots]
+    empty = np.zeros((0, 2))
+    if len(cells) == 0:
+        return ObstacleScore(None, None, 0, 0, int(on_robots.sum()), int((on_robots & obstacle).sum()), empty, empty, empty)
+    origin = cells.min(axis=0) - params.obstacle_window_cells
+    shape = tuple(int(v) for v in cells.max(axis=0) - origin + params.obstacle_window_cells + 1)
+    seen = np.zeros(shape, bool)
+    seen[tuple((cells - origin).T)] = True
+    mapped = np.zeros(shape, bool)
+    mapped[tuple((cells[flagged] - origin).T)] = True
+    true = true_obstacle_cells(terrain, origin, shape, params) & seen
+    one = np.ones((3, 3), bool)
+    tp = mapped & binary_dilation(true, one)
+    found = true & binary_dilation(mapped, one)
+
+    def centres(mask):
+        return (np.argwhere(mask) + origin + 0.5) * oc
+
+    return ObstacleScore(
+        precision=float(tp.sum() / mapped.sum()) if mapped.any() else None,
+        recall=float(found.sum() / true.sum()) if true.any() else None,
+        mapped_cells=int(mapped.sum()),
+        true_cells_seen=int(true.sum()),
+        points_on_robots=int(on_robots.sum()),
+        obstacle_points_on_robots=int((on_robots & obstacle).sum()),
+        tp_xy=centres(tp),
+        fp_xy=centres(mapped & ~tp),
+        missed_xy=centres(true & ~found),
+    )
+
+
+def map_quality(
+    points_world: np.ndarray, obstacle: np.ndarray, terrain: Terrain, params: MapQualityParams | None = None, on_robots: np.ndarray | None = None
+) -> MapQuality:
     """Accuracy, completeness and obstacle precision/recall of a map (points in the world
-    frame, (n, 3), with their obstacle flags) against the terrain it was built on."""
+    frame, (n, 3), with their obstacle flags) against the terrain it was built on; points
+    ``on_robots`` (bool (n,)) are left out of the obstacle scores (:func:`score_obstacles`)."""
     params = params or MapQualityParams()
     pts = np.asarray(points_world, float)
     obstacle = np.asarray(obstacle, bool)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or obstacle.shape != (len(pts),):
         raise MapEvaluationError(f"need (n, 3) points with n >= 1 and (n,) obstacle flags, got {pts.shape} and {obstacle.shape}")
+    if on_robots is not None and np.shape(on_robots) != (len(pts),):
+        raise MapEvaluationError(f"on_robots must have shape ({len(pts)},), got {np.shape(on_robots)}")
     scored = _outside_lander(terrain, pts[:, :2], params.lander_margin_m)
     if not scored.any():
         raise MapEvaluationError("every map point lies on the lander")
@@ -151,23 +227,4 @@ def map_quality(points_world: np.ndarray, obstacle: np.ndarray, terrain: Terrain
         "explored_area_m2": float(len(explored) * ec * ec),
         "surface_samples": len(surface),
     }
-
-    oc = params.obstacle_cell_m
-    cells = np.floor(pts[:, :2] / oc).astype(np.int64)
-    origin = cells.min(axis=0) - params.obstacle_window_cells
-    shape = tuple(int(v) for v in cells.max(axis=0) - origin + params.obstacle_window_cells + 1)
-    seen = np.zeros(shape, bool)
-    seen[tuple((cells - origin).T)] = True
-    mapped = np.zeros(shape, bool)
-    mapped[tuple((cells[obstacle] - origin).T)] = True
-    true = true_obstacle_cells(terrain, origin, shape, params) & seen
-    one = np.ones((3, 3), bool)
-    tp_precision = mapped & binary_dilation(true, one)
-    tp_recall = true & binary_dilation(mapped, one)
-    obstacles = {
-        "precision": float(tp_precision.sum() / mapped.sum()) if mapped.any() else None,
-        "recall": float(tp_recall.sum() / true.sum()) if true.any() else None,
-        "mapped_cells": int(mapped.sum()),
-        "true_cells_seen": int(true.sum()),
-    }
-    return {"accuracy": accuracy, "completeness": completeness, "obstacles": obstacles}
+    return MapQuality(accuracy, completeness, score_obstacles(pts, obstacle, terrain, params, on_robots))

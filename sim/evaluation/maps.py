@@ -13,7 +13,12 @@ graph the map holds every submap the robot has, its peers' included, placed by i
 graph; without it, its own submaps placed by chaining the filter's frame switches.
 ``metrics.json`` gets ``robots.<name>.map``: submap count, sizes and partition reasons,
 map size, ``T_world_map`` (from the true start pose, for evaluation only) and the map
-quality of :mod:`sim.evaluation.map_quality` in the world frame. The section reads a
+quality of :mod:`sim.evaluation.map_quality` in the world frame (``quality``: the map as
+the robot holds it, so its obstacle scores carry its localisation error too), and
+``classification``: the obstacle scores of the robot's own submaps, each placed on its true
+origin, which measure the obstacle classification (thesis 5.1.1) alone. Map points seen on
+or beside another robot (within its ``body_radius_m`` of its true path while the submap
+was built, plus the classification window) are left out of both obstacle scores and counted. The section reads a
 :class:`sim.evaluation.inputs.MapInput`; what the top-down plot draws comes back apart,
 as a :class:`MapPlot`.
 """
@@ -25,12 +30,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from sim.evaluation import trajectory
 from sim.evaluation.inputs import MapInput, TeamTruth
-from sim.evaluation.map_quality import map_quality
+from sim.evaluation.map_quality import MapQualityParams, ObstacleScore, map_quality, score_obstacles
 from sim.world.terrain import Terrain
 from slam.globalmap import GlobalMap
+from slam.submap import Submap
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,11 +47,13 @@ class MapPlot:
     points: np.ndarray  # (n, 3)
     obstacle: np.ndarray  # (n,) bool
     origins: np.ndarray  # (k, 3) submap origins
+    obstacles: ObstacleScore  # of the map as held: true, false and missed obstacle cells
 
 
 def compose(robot_map: MapInput) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any]:
     """The robot's global map from its placed submaps and its active one: poses by
-    submap key, points, obstacle flags, intensities, submap labels and the voxel grid.
+    submap key, points, obstacle flags, intensities, submap labels (robot number in
+    :meth:`slam.globalmap.GlobalMap.robots` order, submap index) and the voxel grid.
     With the graph, the team's map: every submap the robot holds (its peers' included)
     on the graph's submap origins; without it, its own submaps on its filter's chained
     frame switches (:func:`sim.evaluation.inputs.map_input` places them)."""
@@ -96,7 +105,13 @@ def map_section(
     T_world_map = trajectory.truth_since(truth.of(name), robot_map.start_t).T_world_start
     section["T_world_map"] = T_world_map.tolist()
     world = points @ T_world_map[:3, :3].T + T_world_map[:3, 3]
-    section["quality"] = map_quality(world, obstacle, terrain)
+    submaps = {s.key: s for s, _ in robot_map.placed} | ({robot_map.current[0].key: robot_map.current[0]} if robot_map.current else {})
+    names = sorted({robot for robot, _ in submaps})
+    keys = [(names[r], int(i)) for r, i in labels]
+    quality = map_quality(world, obstacle, terrain, on_robots=on_robots(world, keys, submaps, truth))
+    section["quality"] = quality.metrics()
+    classification = own_submaps_on_truth(name, robot_map, truth, terrain)
+    section["classification"] = classification.metrics() if classification is not None else None
     origins = np.array([T_world_map @ T for T in poses.values()]).reshape(-1, 4, 4)[:, :3, 3]
     if recorder is not None:
         # the rolling obstacle map lives in the odometry frame (= the map frame) and has no
@@ -106,7 +121,59 @@ def map_section(
         cells_world = np.column_stack([cells, np.zeros(len(cells))]) @ T_world_map[:3, :3].T + T_world_map[:3, 3]
         cells_world[:, 2] = (T_world_map @ robot_map.T_map_body)[2, 3]
         recorder.log_map(name, robot_number, world, labels[:, 1], obstacle, origins, cells_world)
-    return section, MapPlot(world, obstacle, origins)
+    return section, MapPlot(world, obstacle, origins, quality.obstacles)
+
+
+def on_robots(world: np.ndarray, keys: list[tuple[str, int]], submaps: dict[tuple[str, int], Submap], truth: TeamTruth) -> np.ndarray:
+    """Points (n, 3, world) seen on or beside another robot than the submap's own: within
+    its ``body_radius_m`` of its true position at some time while the point's submap
+    (``keys[i]``) was built, plus the classification window's half-width and one cell (a
+    ground cell that close has the robot in its window and is rightly flagged for it). The
+    static truth holds no robots, so such points cannot be scored against it. (A robot that
+    moved during the submap takes the ground along its path out of the scores, too.)"""
+    params = MapQualityParams()
+    margin = (params.obstacle_window_cells // 2 + 1) * params.obstacle_cell_m
+    out = np.zeros(len(world), bool)
+    by_submap: dict[tuple[str, int], list[int]] = {}
+    for i, key in enumerate(keys):
+        by_submap.setdefault(key, []).append(i)
+    for key, rows in by_submap.items():
+        submap, idx = submaps[key], np.asarray(rows)
+        for robot, path in truth.robots.items():
+            if robot == submap.robot:
+                continue
+            during = (path.t >= submap.t_start - 0.5) & (path.t <= submap.t_end + 0.5)
+            if not during.any():
+                continue
+            d, _ = cKDTree(path.positions[during, :2]).query(world[idx, :2])
+            out[idx] |= d < truth.body_radius_m[robot] + margin
+    return out
+
+
+def own_submaps_on_truth(name: str, robot_map: MapInput, truth: TeamTruth, terrain: Terrain) -> ObstacleScore | None:
+    """Obstacle scores of the robot's own submaps (finished and active), each placed on its
+    true origin (:func:`sim.evaluation.trajectory.frame_origins_truth`) and merged as the
+    robot merges its map: the classification (thesis 5.1.1) without the localisation error."""
+    origins = trajectory.frame_origins_truth(robot_map.start_t, robot_map.switch_times, truth.of(name))
+    finished = [s for s in robot_map.own_submaps if s.frame_index in origins]
+    active = robot_map.current[0] if robot_map.current is not None and robot_map.current[0].robot == name else None
+    current = (active, origins[active.frame_index]) if active is not None and active.frame_index in origins else None
+    if not finished and current is None:
+        return None
+    cfg = robot_map.mapping
+    gmap = GlobalMap(point_resolution_m=cfg.point_resolution_m, voxel_resolution_m=cfg.voxel_resolution_m)
+    for submap in finished:
+        gmap.set_submap(submap)
+    points, obstacle, _, labels = gmap.compose({s.key: origins[s.frame_index] for s in finished}, current=current)
+    if len(points) == 0:
+        return None
+    own = {s.key: s for s in finished} | ({active.key: active} if current is not None else {})
+    world = np.asarray(points, float)
+    return score_obstacles(world, obstacle, terrain, MapQualityParams(), on_robots(world, [(name, int(i)) for i in labels[:, 1]], own, truth))
+
+
+def _share(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.0f} %"
 
 
 _PLY_TYPES = {np.dtype(np.float32): "float", np.dtype(np.uint8): "uchar", np.dtype(np.uint16): "ushort"}
@@ -127,7 +194,9 @@ def write_ply(path: Path, points: np.ndarray, fields: dict[str, np.ndarray]) -> 
 
 
 def plot_maps(maps: dict[str, dict], plots: dict[str, MapPlot | None], truth: TeamTruth, terrain: Terrain, path: Path) -> None:
-    """Top-down view of every robot's map in the world frame: points by height, obstacles red."""
+    """Top-down view of every robot's map in the world frame: points by height; obstacle
+    cells as scored against the truth: true (flagged and true), false (flagged only) and
+    missed (true cells the map saw but did not flag)."""
     import matplotlib.pyplot as plt
 
     robots = [name for name, plot in plots.items() if plot is not None]
@@ -139,14 +208,18 @@ def plot_maps(maps: dict[str, dict], plots: dict[str, MapPlot | None], truth: Te
         world, obstacle, origins = plots[name].points, plots[name].obstacle, plots[name].origins
         lo, hi = np.percentile(world[:, 2], [2, 98])  # robust colour range: points on other robots stand far above
         sc = ax.scatter(world[~obstacle, 0], world[~obstacle, 1], c=world[~obstacle, 2], s=0.5, cmap="viridis", vmin=lo, vmax=hi, rasterized=True)
-        ax.scatter(world[obstacle, 0], world[obstacle, 1], c="red", s=1.5, label="obstacle points", rasterized=True)
+        score = plots[name].obstacles
+        cells = ((score.tp_xy, "blue", "true obstacle"), (score.fp_xy, "red", "false obstacle"), (score.missed_xy, "orange", "missed obstacle"))
+        for xy, colour, label in cells:
+            ax.scatter(xy[:, 0], xy[:, 1], c=colour, s=1.5, marker="s", label=f"{label} ({len(xy)} cells)", rasterized=True)
         gt = truth.of(name).positions
         ax.plot(gt[:, 0], gt[:, 1], "k-", lw=1, label="true path")
         ax.plot(origins[:, 0], origins[:, 1], "^", color="orange", mec="k", ms=7, label="submap origins")
         q = maps[name]["quality"]
         ax.set_title(
             f"{name}: {maps[name]['submaps']} submaps, accuracy median {100 * q['accuracy']['median_m']:.1f} cm, "
-            f"completeness {100 * q['completeness']['share']:.0f} %",
+            f"completeness {100 * q['completeness']['share']:.0f} %\nobstacle precision {_share(q['obstacles']['precision'])}, "
+            f"recall {_share(q['obstacles']['recall'])}",
             fontsize=9,
         )
         ax.set_xlim(-half, half)

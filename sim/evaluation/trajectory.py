@@ -122,6 +122,18 @@ def gravity_aligned(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def frame_origins_truth(start_t: float | None, switch_times: dict[int, float], truth: Trajectory) -> dict[int, np.ndarray]:
+    """Local frame index -> true world pose of that frame's origin, which is a submap origin
+    (thesis 5.1.2): the robot's true pose when the filter switched into it (frame 0: the
+    filter's start at ``start_t``), gravity-aligned as the frames are (thesis 4.1.2)."""
+    if start_t is None or len(truth) == 0:
+        return {}
+    out = {0: gravity_aligned(truth.at(start_t))}
+    for index, t in switch_times.items():
+        out[index] = gravity_aligned(truth.at(t))
+    return out
+
+
 def in_start_frame(poses_world: np.ndarray) -> np.ndarray:
     """Express world poses (N, 4, 4) in the gravity-aligned frame of the first one."""
     start_inv = np.linalg.inv(gravity_aligned(poses_world[0]))

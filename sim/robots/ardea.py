@@ -89,6 +89,7 @@ class Ardea(Robot):
     default_imu_preset = "adis16407"
     default_vo_rig = "down"
     antenna_height_m = 0.3
+    body_radius_m = ROTOR_RADIUS_M + 0.05  # arm ends around the rotor sites
     #: Its downward stereo matches from the matcher's minimum depth on, and closer ground
     #: (standing, taking off, landing) gives SGBM mismatches that put points up to 2 m off.
     #: The margin covers the camera's height on its legs and the terrain's relief below.

@@ -110,6 +110,9 @@ class Robot(ABC):
     has_wheel_odometry: ClassVar[bool] = False
     #: Height of the radio antenna above the body origin (m), for the network's line of sight.
     antenna_height_m: ClassVar[float]
+    #: Horizontal reach of the robot's geometry around its body origin (m): map points this
+    #: close to a robot were seen on it (docs/mapping.md, obstacle scoring).
+    body_radius_m: ClassVar[float]
     #: Map only above this height over the take-off point (filter estimate, m); None: always.
     min_mapping_height_m: ClassVar[float | None] = None
 
