@@ -50,7 +50,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, cut_far_points, distance_error, max_depth_for_error
+from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, cut_far_points, distance_error, nearest_depth
 
 
 class ObstacleException(ValueError):
@@ -213,14 +213,10 @@ def _negative_edges(
     keep = near_ok[nv, c]
     nv, fv, c = nv[keep], fv[keep], c[keep]
     p, q = pts[:, nv, c].astype(float), pts[:, fv, c].astype(float)
-    # a far side beyond the mapping range (eq. 5.2c) is as near as its stereo error allows
-    # (disparity + sqrt(2) Δp): its depth is uncertain by metres there
+    # a far side beyond the mapping range is as near as its stereo error allows (its depth is
+    # uncertain by metres there), and no cliff hides behind a far side that may be no farther
     z_q = depth[fv, c].astype(float)
-    z_near = np.where(
-        z_q <= max_depth_for_error(calibration, params.max_error_m, params.pixel_error),
-        z_q,
-        calibration.fb / (calibration.fb / z_q + math.sqrt(2) * params.pixel_error),
-    )
+    z_near = np.where(near_ok[fv, c], z_q, nearest_depth(z_q, calibration, params.pixel_error))
     q = camera[:, None] + (q - camera[:, None]) * (z_near / z_q)
     with np.errstate(divide="ignore", invalid="ignore"):
         s_min = (p[2] - q[2]) / np.hypot(q[0] - p[0], q[1] - p[1])  # eq. 5.1

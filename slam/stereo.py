@@ -275,6 +275,13 @@ def max_depth_for_error(calibration: StereoCalibration, max_error_m: float, pixe
     return math.sqrt(max_error_m * calibration.fb / (pixel_error * math.sqrt(2)))
 
 
+def nearest_depth(depth: np.ndarray | float, calibration: StereoCalibration, pixel_error: float = DEFAULT_PIXEL_ERROR):
+    """The nearest depth a z-depth is within its stereo error: the disparity raised by
+    ``sqrt(2) Δp`` (the error of eq. 5.2c before linearisation); ``inf`` gives ``fb / (sqrt(2) Δp)``."""
+    z = np.asarray(depth, dtype=float)
+    return calibration.fb / (calibration.fb / z + math.sqrt(2) * pixel_error)
+
+
 def cut_far_points(
     depth: np.ndarray,
     calibration: StereoCalibration,

@@ -50,10 +50,10 @@ class MapPlot:
     obstacles: ObstacleScore  # of the map as held: true, false and missed obstacle cells
 
 
-def compose(robot_map: MapInput) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any]:
+def compose(robot_map: MapInput) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str], Any]:
     """The robot's global map from its placed submaps and its active one: poses by
-    submap key, points, obstacle flags, intensities, submap labels (robot number in
-    :meth:`slam.globalmap.GlobalMap.robots` order, submap index) and the voxel grid.
+    submap key, points, obstacle flags, intensities, submap labels (robot number, submap
+    index), the robot names the numbers stand for, and the voxel grid.
     With the graph, the team's map: every submap the robot holds (its peers' included)
     on the graph's submap origins; without it, its own submaps on its filter's chained
     frame switches (:func:`sim.evaluation.inputs.map_input` places them)."""
@@ -65,7 +65,8 @@ def compose(robot_map: MapInput) -> tuple[dict, np.ndarray, np.ndarray, np.ndarr
         poses[submap.key] = origin
     points, obstacle, intensity, labels = gmap.compose(poses, current=robot_map.current)
     voxels = gmap.voxel_grid(poses, current=robot_map.current)
-    return poses, points, obstacle, intensity, labels, voxels
+    names = gmap.robots(robot_map.current[0] if robot_map.current else None)
+    return poses, points, obstacle, intensity, labels, names, voxels
 
 
 def map_section(
@@ -75,7 +76,7 @@ def map_section(
     metrics and what the top-down plot draws of it."""
     if robot_map is None or robot_map.start_t is None:
         return {"status": "no mapping" if robot_map is None else "not started"}, None
-    poses, points, obstacle, intensity, labels, voxels = compose(robot_map)
+    poses, points, obstacle, intensity, labels, names, voxels = compose(robot_map)
     own = robot_map.own_submaps
     sizes = [s.size_bytes for s in own]
     reasons = [r for _, r in robot_map.partitions]
@@ -105,10 +106,9 @@ def map_section(
     T_world_map = trajectory.truth_since(truth.of(name), robot_map.start_t).T_world_start
     section["T_world_map"] = T_world_map.tolist()
     world = points @ T_world_map[:3, :3].T + T_world_map[:3, 3]
-    submaps = {s.key: s for s, _ in robot_map.placed} | ({robot_map.current[0].key: robot_map.current[0]} if robot_map.current else {})
-    names = sorted({robot for robot, _ in submaps})
-    keys = [(names[r], int(i)) for r, i in labels]
-    quality = map_quality(world, obstacle, terrain, on_robots=on_robots(world, keys, submaps, truth))
+    submaps = [s for s, _ in robot_map.placed] + ([robot_map.current[0]] if robot_map.current else [])
+    submap_of = _submap_of(labels, names, submaps)
+    quality = map_quality(world, obstacle, terrain, on_robots=on_robots(world, submap_of, submaps, truth))
     section["quality"] = quality.metrics()
     classification = own_submaps_on_truth(name, robot_map, truth, terrain)
     section["classification"] = classification.metrics() if classification is not None else None
@@ -124,30 +124,36 @@ def map_section(
     return section, MapPlot(world, obstacle, origins, quality.obstacles)
 
 
-def on_robots(world: np.ndarray, keys: list[tuple[str, int]], submaps: dict[tuple[str, int], Submap], truth: TeamTruth) -> np.ndarray:
-    """Points (n, 3, world) seen on or beside another robot than the submap's own: within
-    its ``body_radius_m`` of its true position at some time while the point's submap
-    (``keys[i]``) was built, plus the classification window's half-width and one cell (a
-    ground cell that close has the robot in its window and is rightly flagged for it). The
-    static truth holds no robots, so such points cannot be scored against it. (A robot that
-    moved during the submap takes the ground along its path out of the scores, too.)"""
+def on_robots(world: np.ndarray, submap_of: np.ndarray, submaps: list[Submap], truth: TeamTruth) -> np.ndarray:
+    """Points (n, 3, world) seen on or beside another robot than their submap's own (point i
+    is in ``submaps[submap_of[i]]``): within its ``body_radius_m`` of its true position at
+    some time while the submap was built, plus the classification window's half-width and
+    one cell (a ground cell that close has the robot in its window and is rightly flagged for
+    it). The static truth holds no robots, so such points cannot be scored against it. (A
+    robot that moved during the submap takes the ground along its path out of the scores, too.)"""
     params = MapQualityParams()
     margin = (params.obstacle_window_cells // 2 + 1) * params.obstacle_cell_m
     out = np.zeros(len(world), bool)
-    by_submap: dict[tuple[str, int], list[int]] = {}
-    for i, key in enumerate(keys):
-        by_submap.setdefault(key, []).append(i)
-    for key, rows in by_submap.items():
-        submap, idx = submaps[key], np.asarray(rows)
+    order = np.argsort(submap_of, kind="stable")
+    bounds = np.searchsorted(submap_of[order], np.arange(len(submaps) + 1))
+    for k, submap in enumerate(submaps):
+        idx = order[bounds[k] : bounds[k + 1]]
         for robot, path in truth.robots.items():
-            if robot == submap.robot:
-                continue
             during = (path.t >= submap.t_start - 0.5) & (path.t <= submap.t_end + 0.5)
-            if not during.any():
+            if robot == submap.robot or len(idx) == 0 or not during.any():
                 continue
             d, _ = cKDTree(path.positions[during, :2]).query(world[idx, :2])
             out[idx] |= d < truth.body_radius_m[robot] + margin
     return out
+
+
+def _submap_of(labels: np.ndarray, names: list[str], submaps: list[Submap]) -> np.ndarray:
+    """Index into ``submaps`` of each point's submap from its compose label (robot number in
+    ``names``, submap index)."""
+    table = {key: k for k, key in enumerate(s.key for s in submaps)}
+    lut = np.array([table[(names[r], i)] for r, i in np.unique(labels, axis=0)], dtype=np.int64).reshape(-1)
+    _, inverse = np.unique(labels, axis=0, return_inverse=True)
+    return lut[inverse.ravel()]
 
 
 def own_submaps_on_truth(name: str, robot_map: MapInput, truth: TeamTruth, terrain: Terrain) -> ObstacleScore | None:
@@ -167,9 +173,10 @@ def own_submaps_on_truth(name: str, robot_map: MapInput, truth: TeamTruth, terra
     points, obstacle, _, labels = gmap.compose({s.key: origins[s.frame_index] for s in finished}, current=current)
     if len(points) == 0:
         return None
-    own = {s.key: s for s in finished} | ({active.key: active} if current is not None else {})
+    own = finished + ([active] if current is not None else [])
     world = np.asarray(points, float)
-    return score_obstacles(world, obstacle, terrain, MapQualityParams(), on_robots(world, [(name, int(i)) for i in labels[:, 1]], own, truth))
+    on = on_robots(world, _submap_of(labels, [name], own), own, truth)
+    return score_obstacles(world, obstacle, terrain, MapQualityParams(), on)
 
 
 def _share(value: float | None) -> str:
