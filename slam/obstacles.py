@@ -43,6 +43,7 @@ beyond the stereo range still shows a cliff). The column-wise search assumes sma
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from enum import StrEnum
@@ -301,6 +302,67 @@ def _step_cells(
     return (int(lo[0]), int(lo[1])), height, h_diff, threshold, flat
 
 
+_ON_LINE_M = 0.002  # ground this close to the line counts as below it (a plane slope lies on it)
+
+
+def slope_reach_cells(params: ObstacleParams) -> int:
+    """Cells within which a drop of ``h_max`` is steeper than the maximal slope:
+    ``h_max / tan(max_slope)`` (0.41 m, 8 cells by default)."""
+    return int(params.step_height_m / math.tan(params.max_slope_rad) / params.resolution_m)
+
+
+@functools.cache
+def _descent_lines(reach: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Offsets (K, 2) of the cells within ``reach`` cells, the cells (K, reach - 1, 2) that
+    the line to each crosses (rounded; unused slots repeat the start) and their place on
+    the line (K, reach - 1) as a fraction of its length."""
+    offsets = np.array([(di, dj) for di in range(-reach, reach + 1) for dj in range(-reach, reach + 1) if 0 < di * di + dj * dj <= reach * reach])
+    between = np.zeros((len(offsets), max(reach - 1, 1), 2), np.int64)
+    along = np.zeros(between.shape[:2])
+    for k, (di, dj) in enumerate(offsets):
+        steps = max(abs(di), abs(dj))
+        cells = np.rint(np.outer(np.arange(1, steps) / steps, (di, dj))).astype(np.int64)
+        between[k, : steps - 1] = cells
+        along[k, : steps - 1] = cells @ (di, dj) / (di * di + dj * dj)
+    return offsets, between, along
+
+
+def steep_drops(height: np.ndarray, params: ObstacleParams, margin: np.ndarray | float = 0.0) -> np.ndarray:
+    """Slope ratio (nx, ny) of the cells of a 2.5D height map (NaN: no data) from which the
+    surface falls by more than the robot can drive down, where it is seen: eq. 5.1's
+    condition (a drop above ``h_max`` at more than the maximal slope) for visible ground,
+    which the window's step test (eq. 5.3) misses for slopes between the maximal slope and
+    about ``atan(h_max / window)``. For each cell ``p`` and each cell ``q`` within
+    :func:`slope_reach_cells` whose surface between them lies below the line ``pq`` (the
+    descent starts at ``p``), the ratio is ``(h_p - h_q) / (h_max + margin_p)``; above 1 the
+    cell is untraversable. ``margin`` (a cell array or a number) is the height error the
+    test tolerates (the stereo error of eq. 5.4 for measured maps). These are the rims of
+    cliffs and the cells of too steep slopes, not the flat before a cliff (the ground between
+    it and the drop rises above the line). Our addition to thesis 5.1.1 (docs/mapping.md)."""
+    reach = slope_reach_cells(params)
+    offsets, between, along = _descent_lines(reach)
+    nx, ny = height.shape
+    ratio = np.zeros((nx, ny))
+    limit = params.step_height_m + np.broadcast_to(np.asarray(margin, float), (nx, ny))
+    padded = np.pad(np.asarray(height, float), reach, constant_values=np.nan)
+    cells = np.argwhere(np.isfinite(height))
+    chunk = max(1, 2_000_000 // len(offsets))
+    for start in range(0, len(cells), chunk):
+        i, j = cells[start : start + chunk].T
+        h, lim = height[i, j], limit[i, j]
+        with np.errstate(invalid="ignore"):
+            drop = h[:, None] - padded[i[:, None] + reach + offsets[:, 0], j[:, None] + reach + offsets[:, 1]]
+            c, k = np.nonzero(drop > lim[:, None])
+        if len(c) == 0:
+            continue
+        ground = padded[i[c, None] + reach + between[k, :, 0], j[c, None] + reach + between[k, :, 1]]
+        line = h[c, None] - drop[c, k, None] * along[k] + _ON_LINE_M
+        with np.errstate(invalid="ignore"):
+            below = np.all(ground <= line, axis=1)
+        np.fmax.at(ratio, (i[c[below]], j[c[below]]), drop[c[below], k[below]] / lim[c[below]])
+    return ratio
+
+
 def classify_depth(
     depth: np.ndarray, calibration: StereoCalibration, T_gravity_cam: np.ndarray, params: ObstacleParams | None = None
 ) -> Classification:
@@ -318,7 +380,7 @@ def classify_depth(
     edges, min_slope = _negative_edges(depth_e, pts, in_range, t, calibration, params)
 
     origin, height, h_diff, threshold, flat = _step_cells(np.compress(in_range.ravel(), pts.reshape(3, -1), axis=1), R, t, calibration, params)
-    traversability = h_diff / threshold
+    traversability = np.fmax(h_diff / threshold, steep_drops(height, params, threshold - params.step_height_m))
     edge_cells = np.floor(pts[:2, edges] / params.resolution_m).astype(np.int64) - np.array(origin)[:, None]  # edges lie in range
     np.fmax.at(traversability, tuple(edge_cells), min_slope[edges] / math.tan(params.max_slope_rad))
     traversability = traversability.ravel()

@@ -15,6 +15,12 @@ def terrain():
     return generate_terrain(scenario.terrain, RandomStreams(scenario.seed).rng("terrain"), [])
 
 
+@pytest.fixture(scope="module")
+def rocky():
+    scenario = load_scenario("scenarios/obstacles/mars_rocks.yaml")
+    return generate_terrain(scenario.terrain, RandomStreams(scenario.seed).rng("terrain"), [])
+
+
 def true_surface_map(terrain, x0, y0, size, spacing=0.05):
     x, y = np.meshgrid(np.arange(x0, x0 + size, spacing), np.arange(y0, y0 + size, spacing), indexing="ij")
     x, y = x.ravel(), y.ravel()
@@ -39,14 +45,20 @@ def test_a_lifted_or_partial_map_scores_what_is_wrong_with_it(terrain):
     assert map_quality(sparse, np.zeros(len(sparse), bool), terrain).completeness["share"] < 0.4
 
 
-def test_obstacle_precision_and_recall_around_a_rock(terrain):
-    rock = max(terrain.rocks, key=lambda r: r.radii[2])
-    x0, y0 = rock.center[:2] - 1.5
-    pts = true_surface_map(terrain, x0, y0, 3.0)
+def test_obstacle_precision_and_recall_around_a_rock(rocky):
+    """The tallest rock on ground the robot could drive (no slope above 15 deg around it)."""
+    terrain = rocky
+    for rock in sorted(terrain.rocks, key=lambda r: -r.radii[2]):
+        x0, y0 = rock.center[:2] - 1.0
+        pts = true_surface_map(terrain, x0, y0, 2.0)
+        ground = terrain.height_at(pts[:, 0], pts[:, 1]).reshape(40, 40)
+        if np.all(np.hypot(*np.gradient(ground, 0.05)) < np.tan(np.radians(15))):
+            break
+    assert rock.radii[2] > 0.2
     tall = pts[:, 2] > terrain.height_at(pts[:, 0], pts[:, 1]) + 0.05  # on the rock
     right = map_quality(pts, tall, terrain).metrics()["obstacles"]
-    # true obstacles are the rock's steps (window height difference > 0.15 m), not its whole top
-    # or its low flanks, so flagging the rock is mostly but not entirely right
+    # true obstacles are the rock's steps (window height difference > 0.15 m) and rims, not its
+    # whole top or its low flanks, so flagging the rock is mostly but not entirely right
     assert right["true_cells_seen"] > 0
     assert right["recall"] > 0.5 and right["precision"] > 0.6, right
     wrong = map_quality(pts, ~tall, terrain).metrics()["obstacles"]  # everything but the rock flagged

@@ -18,6 +18,7 @@ from slam.obstacles import (
     RollingObstacleMap,
     classify_depth,
     negative_edges,
+    steep_drops,
 )
 from slam.stereo import StereoCalibration, distance_error
 
@@ -304,6 +305,61 @@ def test_lower_ground_beyond_range_is_edge_only_with_inf_depth():
 
 
 # --------------------------------------------------------------------------- rolling map
+
+
+def _profile(heights: np.ndarray, width: int = 30) -> np.ndarray:
+    """A 2.5D map of a straight profile along x."""
+    return np.repeat(heights[:, None], width, axis=1)
+
+
+@pytest.mark.parametrize(
+    ("drop_m", "slope_deg", "steep"),
+    [
+        (0.3, 90.0, True),  # a wall
+        (0.1, 90.0, False),  # a drop the robot drives down
+        (0.5, 18.0, False),  # a slope it drives
+        (0.5, 25.0, True),  # too steep
+        (0.5, 45.0, True),
+    ],
+)
+def test_steep_drops_start_at_the_top_edge_and_cover_too_steep_slopes(drop_m, slope_deg, steep):
+    """Cells from which the surface falls by more than h_max at more than the maximal slope
+    (20 deg), the classification's test of seen ground and the truth's cliffs and slopes. On a straight profile (flat at the
+    top up to x = 2 m) that is the top edge and the slope down to h_max / tan(20 deg) above
+    its foot, never the flat before it."""
+    params = ObstacleParams()
+    cell = params.resolution_m
+    x = np.arange(120) * cell
+    run = 0.0 if slope_deg == 90.0 else drop_m / np.tan(np.radians(slope_deg))
+    h = drop_m - np.clip((x - 2.0) / run, 0, 1) * drop_m if run else np.where(x < 2.0, drop_m, 0.0)
+    found = x[steep_drops(_profile(h), params)[:, 15] > 1]
+    if not steep:
+        assert len(found) == 0, found
+        return
+    top, foot = x[h == drop_m].max(), 2.0 + run  # the last cell at full height; the slope's end
+    expected = x[(x >= top) & (x < foot - params.step_height_m / np.tan(params.max_slope_rad) - cell)]
+    assert found.min() == top and set(expected) <= set(found) and found.max() < foot, (found, expected)
+
+
+def test_a_rounded_crest_is_steep_from_where_it_falls_fast_enough():
+    """A crest falling by 0.3 m along half a cosine over 0.6 m (steepest 38 deg): the flat top
+    is not steep, the fall from 0.1 m beyond the crest on is."""
+    params = ObstacleParams()
+    x = np.arange(120) * params.resolution_m
+    h = np.where(x < 2.0, 0.3, np.where(x > 2.6, 0.0, 0.15 * (1 + np.cos(np.pi * (x - 2.0) / 0.6))))
+    found = x[steep_drops(_profile(h), params)[:, 15] > 1]
+    assert len(found) > 1 and found.min() > 2.0 and found.max() < 2.6, found
+
+
+def test_steep_drops_see_through_no_gap_and_tolerate_the_stereo_error():
+    """A wall seen with a hole in the ground before it is found where the ground is known; a
+    0.2 m drop is no obstacle for a cell whose height is 0.1 m uncertain."""
+    params = ObstacleParams()
+    x = np.arange(120) * params.resolution_m
+    h = _profile(np.where(x < 2.0, 0.2, 0.0))
+    h[:30] = np.nan
+    assert list(np.nonzero(steep_drops(h, params)[:, 15] > 1)[0]) == [39]
+    assert not (steep_drops(h, params, margin=0.1) > 1).any()
 
 
 def test_rolling_map_keeps_world_position_and_forgets_scrolled_out_cells(box_scene):

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from sim.scenario import MappingConfig
     from slam.agent import AgentStats, DetectionRecord
     from slam.graph import MultiRobotGraph
-    from slam.obstacles import RollingObstacleMap
+    from slam.obstacles import ObstacleParams, RollingObstacleMap
     from slam.submap import Submap
     from slam.team_matcher import TeamMatcher
 
@@ -88,6 +88,7 @@ class MapInput:
     start_t: float | None  # the filter's first estimate: the time of the map frame's truth
     switch_times: dict[int, float]  # local frame index -> time of the switch into it (submap origins' truth)
     mapping: MappingConfig
+    obstacle: ObstacleParams  # the classification it ran with (thesis 5.1.1)
     own_submaps: list[Submap]  # its finished submaps
     active_images: int  # images in the submap under construction
     images_integrated: int
@@ -194,6 +195,7 @@ def map_input(onboard: OnboardStack) -> MapInput | None:
         start_t=_start_t(onboard),
         switch_times=_switch_times(onboard),
         mapping=onboard.slam_cfg.mapping,
+        obstacle=mapper.obstacle_params,
         own_submaps=list(mapper.submaps),
         active_images=mapper.builder.images,
         images_integrated=mapper.images,

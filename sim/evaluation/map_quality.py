@@ -14,22 +14,27 @@ surface: map points on them count as errors, as they would for a map user.
   point within ``completeness_radius_m``; the explored area is the set of
   ``explored_cell_m`` cells holding at least one map point;
 - **obstacles**: the true obstacle cells are those of a 2.5D height map of the true
-  surface (top of terrain or rock) whose window height difference exceeds the robot's
-  step height, the same rule as the classification (thesis 5.1.1) without stereo error;
-  precision and recall of the map's obstacle points' cells against them within the
-  explored area, with one cell of tolerance.
+  surface (top of terrain or rock) that the robot's classification criterion (thesis
+  5.1.1, the robot's :class:`slam.obstacles.ObstacleParams`) calls impassable without
+  stereo error: a window height difference above the step height ``h_max``, or a cell from
+  which the surface drops by more than ``h_max`` at more than the maximal slope (the
+  negative-edge rule, eq. 5.1, with its drop condition, on every surface: cliff rims and
+  slopes too steep to drive, as the classification tests its visible ground); precision and recall of the
+  map's obstacle points' cells against them within the explored area, with one cell of
+  tolerance.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.ndimage import binary_dilation, maximum_filter, minimum_filter
 from scipy.spatial import ConvexHull, cKDTree
 
 from sim.world.terrain import LANDER_RADIUS, Terrain
+from slam.obstacles import ObstacleParams, slope_reach_cells, steep_drops
 
 
 @dataclass(frozen=True)
@@ -37,10 +42,9 @@ class MapQualityParams:
     surface_spacing_m: float = 0.02
     completeness_radius_m: float = 0.1
     explored_cell_m: float = 0.5
-    obstacle_cell_m: float = 0.05
-    obstacle_window_cells: int = 5
-    step_height_m: float = 0.15
     lander_margin_m: float = 0.2
+    obstacle: ObstacleParams = field(default_factory=ObstacleParams)  # the robot's classification criterion
+
 
 
 class MapEvaluationError(ValueError):
@@ -105,23 +109,30 @@ class SurfaceTruth:
 
 
 def true_obstacle_cells(terrain: Terrain, origin: np.ndarray, shape: tuple[int, int], params: MapQualityParams) -> np.ndarray:
-    """Bool (nx, ny) grid of cells ``origin + (i, j)`` (lattice ``floor(xy / cell)``) whose
-    window height difference on the true surface exceeds the step height; the lander's
-    footprint is an obstacle."""
-    cell = params.obstacle_cell_m
-    i = (origin[0] + np.arange(shape[0]) + 0.5) * cell
-    j = (origin[1] + np.arange(shape[1]) + 0.5) * cell
+    """Bool (nx, ny) grid of cells ``origin + (i, j)`` (lattice ``floor(xy / cell)``) that the
+    classification criterion calls impassable on the true surface: a window height
+    difference above the step height, or a drop above the step height steeper than the
+    maximal slope (:func:`slam.obstacles.steep_drops` without a margin); the lander's
+    footprint is an obstacle. The surface is sampled beyond the grid so that drops at its
+    edge see their foot."""
+    o = params.obstacle
+    cell = o.resolution_m
+    pad = max(slope_reach_cells(o), o.window_cells)
+    i = (origin[0] - pad + np.arange(shape[0] + 2 * pad) + 0.5) * cell
+    j = (origin[1] - pad + np.arange(shape[1] + 2 * pad) + 0.5) * cell
     cx, cy = np.meshgrid(i, j, indexing="ij")
-    h = terrain.surface_height_at(cx.ravel(), cy.ravel()).reshape(shape)
-    k = params.obstacle_window_cells
-    obstacles = maximum_filter(h, size=k, mode="nearest") - minimum_filter(h, size=k, mode="nearest") > params.step_height_m
-    lander = ~_outside_lander(terrain, np.column_stack([cx.ravel(), cy.ravel()]), 0.0).reshape(shape)
+    h = terrain.surface_height_at(cx.ravel(), cy.ravel()).reshape(cx.shape)
+    k = o.window_cells
+    steps = maximum_filter(h, size=k, mode="nearest") - minimum_filter(h, size=k, mode="nearest") > o.step_height_m
+    inner = (slice(pad, pad + shape[0]), slice(pad, pad + shape[1]))
+    obstacles = steps[inner] | (steep_drops(h, o)[inner] > 1)
+    lander = ~_outside_lander(terrain, np.column_stack([cx[inner].ravel(), cy[inner].ravel()]), 0.0).reshape(shape)
     return obstacles | lander
 
 
 @dataclass(frozen=True, eq=False)
 class ObstacleScore:
-    """Obstacle cells of a map against the true ones (cells of ``obstacle_cell_m``; centres
+    """Obstacle cells of a map against the true ones (cells of the classification's ``resolution_m``; centres
     (k, 2) in the world for the plot): flagged and true (``tp``), flagged only (``fp``), true
     only (``missed``, true cells seen by the map that no flagged cell is next to)."""
 
@@ -157,14 +168,14 @@ def score_obstacles(
     the points cover, with one cell of tolerance. Points ``on_robots`` (seen on a robot,
     which the static truth does not hold) are neither scored nor count as covering a cell."""
     on_robots = np.zeros(len(pts), bool) if on_robots is None else np.asarray(on_robots, bool)
-    oc = params.obstacle_cell_m
+    oc = params.obstacle.resolution_m
     cells = np.floor(pts[~on_robots, :2] / oc).astype(np.int64)
     flagged = obstacle[~on_robots]
     empty = np.zeros((0, 2))
     if len(cells) == 0:
         return ObstacleScore(None, None, 0, 0, int(on_robots.sum()), int((on_robots & obstacle).sum()), empty, empty, empty)
-    origin = cells.min(axis=0) - params.obstacle_window_cells
-    shape = tuple(int(v) for v in cells.max(axis=0) - origin + params.obstacle_window_cells + 1)
+    origin = cells.min(axis=0) - params.obstacle.window_cells
+    shape = tuple(int(v) for v in cells.max(axis=0) - origin + params.obstacle.window_cells + 1)
     seen = np.zeros(shape, bool)
     seen[tuple((cells - origin).T)] = True
     mapped = np.zeros(shape, bool)

@@ -108,7 +108,8 @@ def map_section(
     world = points @ T_world_map[:3, :3].T + T_world_map[:3, 3]
     submaps = [s for s, _ in robot_map.placed] + ([robot_map.current[0]] if robot_map.current else [])
     submap_of = _submap_of(labels, names, submaps)
-    quality = map_quality(world, obstacle, terrain, on_robots=on_robots(world, submap_of, submaps, truth))
+    params = MapQualityParams(obstacle=robot_map.obstacle)
+    quality = map_quality(world, obstacle, terrain, params, on_robots(world, submap_of, submaps, truth, params))
     section["quality"] = quality.metrics()
     classification = own_submaps_on_truth(name, robot_map, truth, terrain)
     section["classification"] = classification.metrics() if classification is not None else None
@@ -124,15 +125,14 @@ def map_section(
     return section, MapPlot(world, obstacle, origins, quality.obstacles)
 
 
-def on_robots(world: np.ndarray, submap_of: np.ndarray, submaps: list[Submap], truth: TeamTruth) -> np.ndarray:
+def on_robots(world: np.ndarray, submap_of: np.ndarray, submaps: list[Submap], truth: TeamTruth, params: MapQualityParams) -> np.ndarray:
     """Points (n, 3, world) seen on or beside another robot than their submap's own (point i
     is in ``submaps[submap_of[i]]``): within its ``body_radius_m`` of its true position at
     some time while the submap was built, plus the classification window's half-width and
     one cell (a ground cell that close has the robot in its window and is rightly flagged for
     it). The static truth holds no robots, so such points cannot be scored against it. (A
     robot that moved during the submap takes the ground along its path out of the scores, too.)"""
-    params = MapQualityParams()
-    margin = (params.obstacle_window_cells // 2 + 1) * params.obstacle_cell_m
+    margin = (params.obstacle.window_cells // 2 + 1) * params.obstacle.resolution_m
     out = np.zeros(len(world), bool)
     order = np.argsort(submap_of, kind="stable")
     bounds = np.searchsorted(submap_of[order], np.arange(len(submaps) + 1))
@@ -175,8 +175,9 @@ def own_submaps_on_truth(name: str, robot_map: MapInput, truth: TeamTruth, terra
         return None
     own = finished + ([active] if current is not None else [])
     world = np.asarray(points, float)
-    on = on_robots(world, _submap_of(labels, [name], own), own, truth)
-    return score_obstacles(world, obstacle, terrain, MapQualityParams(), on)
+    params = MapQualityParams(obstacle=robot_map.obstacle)
+    on = on_robots(world, _submap_of(labels, [name], own), own, truth, params)
+    return score_obstacles(world, obstacle, terrain, params, on)
 
 
 def _share(value: float | None) -> str:
