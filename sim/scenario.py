@@ -468,8 +468,13 @@ class MatchingConfig(StrictModel):
     """Submap matching (thesis 6.1): intra- and inter-robot loop closures ``c``."""
 
     enabled: bool = Field(True, description="match submaps in the background (needs slam.mapping and slam.graph)")
-    mode: Literal["4d", "6d"] = slam_field(
-        SlamParam(MatcherParams, "mode"), description="thesis 6.1.2: gravity-aligned 4D alignment and ICP, or 6D (8.1.2's baseline)"
+    mode: Literal["4d", "6d", "4d+6d"] = slam_field(
+        SlamParam(MatcherParams, "mode"),
+        description="thesis 6.1.2: gravity-aligned 4D alignment and ICP, 6D (8.1.2's baseline), or 4D alignment refined by a 6D ICP (8.1.2)",
+    )
+    keypoints: Literal["obstacles", "geometry", "both"] = slam_field(
+        SlamParam(MatcherParams, "keypoints"),
+        description="keypoints from obstacle points (thesis 6.1.1), salient local geometry (surface variation; 9.3), or both",
     )
     min_overlap_m2: PositiveFloat = slam_field(
         SlamParam(MatcherParams, "min_overlap_m2"),

@@ -2,9 +2,15 @@
 pairing and prioritisation of submap pairs (eq. 6.1-6.4), and the pairwise matching
 pipeline (6.1.2): 3D descriptors, correspondences, Hough voting into hypotheses,
 RANSAC with the two-point gravity-aligned solver (eq. 6.5-6.7), plausibility checks,
-ICP restricted to x, y, z and yaw, and a covariance from the ICP residual. The 6D
-variant of 8.1.2 (3-point RANSAC and 6D ICP, 10 deg / 1 deg roll-pitch thresholds) is
-:attr:`MatchMode.SIX_D`.
+ICP restricted to x, y, z and yaw, and a covariance from the ICP residual. The
+variants of 8.1.2 are :class:`MatchMode`: 6D (3-point RANSAC and 6D ICP, 10 deg / 1 deg
+roll-pitch thresholds) and 4D+6D (the 4D alignment, refined by a 6D ICP).
+
+Keypoints (:class:`KeypointSelection`) are the thesis's obstacle points (6.1.1), or
+points of salient local geometry: a surface variation (Pauly et al. 2002: the smallest
+eigenvalue of the neighbourhood's scatter over their sum) above a threshold, so that
+rough ground, ridges and crater rims can be matched where no obstacle was classified
+(the lesson of 9.3), or both.
 
 Choices where the thesis used PCL:
 
@@ -53,14 +59,26 @@ class MatchMode(StrEnum):
 
     FOUR_D = "4d"  # 2-point gravity-aligned RANSAC and x, y, z, yaw ICP
     SIX_D = "6d"  # 3-point SVD RANSAC and 6D ICP, roll/pitch checked afterwards
+    FOUR_SIX_D = "4d+6d"  # 2-point gravity-aligned RANSAC and 4D ICP, then 6D ICP, roll/pitch checked afterwards
+
+
+class KeypointSelection(StrEnum):
+    """Which points of a submap become keypoints (6.1.1; 9.3 for the geometry)."""
+
+    OBSTACLES = "obstacles"  # the obstacle classification's points (thesis)
+    GEOMETRY = "geometry"  # points whose surface variation reaches min_surface_variation
+    BOTH = "both"
 
 
 @dataclass(frozen=True)
 class MatcherParams:
     mode: MatchMode = MatchMode.FOUR_D
     # suitability and keypoints (6.1.1)
+    keypoints: KeypointSelection = KeypointSelection.OBSTACLES  # as the thesis; geometry and both measured in docs/matching.md
     min_points: int = 1000
-    min_obstacle_points: int = 100
+    min_selected_points: int = 100  # thesis: 100 obstacle points; here of the keypoint selection
+    saliency_radius_m: float = 0.2  # neighbourhood of the surface variation (geometry keypoints)
+    min_surface_variation: float = 0.03  # lambda_min / sum(lambda) of that neighbourhood; a plane has 0, isotropic scatter 1/3
     keypoint_resolution_m: float = 0.1
     min_known_fraction: float = 0.5  # of the voxels in the descriptor sphere (thesis 0.8; see docs/matching.md)
     line_distance_m: float = 0.5
@@ -82,8 +100,8 @@ class MatcherParams:
     ransac_inlier_m: float = 0.2
     min_inliers: int = 6  # distinct keypoints on each side supporting a hypothesis
     min_off_line_inliers: int = 3  # matched keypoints off the RANSAC line, in each submap
-    max_roll_pitch_initial_rad: float = math.radians(10.0)  # 6D only (8.1.2)
-    max_roll_pitch_final_rad: float = math.radians(1.0)  # 6D only (8.1.2)
+    max_roll_pitch_initial_rad: float = math.radians(10.0)  # 6D RANSAC only (8.1.2)
+    max_roll_pitch_final_rad: float = math.radians(1.0)  # 6D and 4D+6D ICP (8.1.2)
     sigma_bound: float = 2.0  # hypotheses must lie within this many relative sigmas of the graph
     sigma_scale: float = 1.0  # multiplies the graph's relative sigmas (eq. 6.1-6.4 and the checks)
     # refinement and acceptance
@@ -92,7 +110,7 @@ class MatcherParams:
     icp_point_resolution_m: float = 0.1  # source cloud subsampling for the ICP
     max_icp_rmse_m: float = 0.1
     min_icp_pairs: int = 300
-    roll_pitch_sigma_rad: float = math.radians(0.5)  # 4D: the filter's roll/pitch uncertainty of the origins
+    roll_pitch_sigma_rad: float = math.radians(0.5)  # 4D ICP: the filter's roll/pitch uncertainty of the origins
     seed: int = 0
 
     def __post_init__(self):
@@ -100,6 +118,10 @@ class MatcherParams:
             object.__setattr__(self, "mode", MatchMode(self.mode))
         except ValueError:
             raise MatcherException(f"mode must be one of {[m.value for m in MatchMode]}, got {self.mode!r}") from None
+        try:
+            object.__setattr__(self, "keypoints", KeypointSelection(self.keypoints))
+        except ValueError:
+            raise MatcherException(f"keypoints must be one of {[k.value for k in KeypointSelection]}, got {self.keypoints!r}") from None
         bad = [
             f"{k}={v}" for k, v in vars(self).items() if isinstance(v, int | float) and not isinstance(v, bool) and (not math.isfinite(v) or v < 0)
         ]
@@ -107,7 +129,13 @@ class MatcherParams:
             raise MatcherException(f"matcher parameters must be finite and >= 0: {', '.join(bad)}")
 
     @property
+    def ransac_dof(self) -> int:
+        """Degrees of freedom of the initial alignment."""
+        return 6 if self.mode is MatchMode.SIX_D else 4
+
+    @property
     def dof(self) -> int:
+        """Degrees of freedom of the final refinement (and of the match's covariance)."""
         return 4 if self.mode is MatchMode.FOUR_D else 6
 
 
@@ -122,7 +150,7 @@ class Keypoints:
     key: SubmapKey
     frame_index: int
     points: np.ndarray  # (n, 3) keypoints in the submap frame
-    obstacle_xyz: np.ndarray  # (m, 3) obstacle keypoints before the known-space filter (bounding boxes)
+    selected_xyz: np.ndarray  # (m, 3) the selected points through the voxel filter, before the known-space filter (bounding boxes)
     cloud: np.ndarray  # (k, 3) the full point cloud
     descriptors: np.ndarray | None = None  # (n, 33) unit FPFH
     frames: np.ndarray | None = None  # (n, 3, 3) local reference frames, rows x, y, z
@@ -130,20 +158,42 @@ class Keypoints:
     tree: cKDTree | None = None  # of the cloud
 
 
+def surface_variation(cloud: np.ndarray, radius: float) -> np.ndarray:
+    """Surface variation (Pauly et al. 2002) of each point: the smallest eigenvalue of
+    the scatter of its neighbours within ``radius`` over the sum of all three; 0 on a
+    plane, larger on ridges, rims, rough ground and rocks, at most 1/3."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
+    pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamRadius(radius=radius))
+    ev = np.linalg.eigvalsh(np.asarray(pcd.covariances))
+    return ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-12)
+
+
+_SELECTED = {KeypointSelection.OBSTACLES: "obstacle", KeypointSelection.GEOMETRY: "salient", KeypointSelection.BOTH: "obstacle or salient"}
+
+
 def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     """Suitability check and keypoints of one submap (6.1.1), or the reason it is
-    unsuitable: at least ``min_points`` points and ``min_obstacle_points`` obstacle
-    points; keypoints are the obstacle points filtered at ``keypoint_resolution_m``,
-    dropped where less than ``min_known_fraction`` of the voxels in the descriptor
-    sphere are known; at least ``min_off_line_keypoints`` keypoints must lie farther than
-    ``line_distance_m`` (xy) from a RANSAC line through them."""
+    unsuitable: at least ``min_points`` points and ``min_selected_points`` selected
+    points (obstacle points, points with a :func:`surface_variation` of at least
+    ``min_surface_variation``, or either); keypoints are the selected points filtered
+    at ``keypoint_resolution_m``, dropped where less than ``min_known_fraction`` of the
+    voxels in the descriptor sphere are known; at least ``min_off_line_keypoints``
+    keypoints must lie farther than ``line_distance_m`` (xy) from a RANSAC line through
+    them."""
     pts = np.asarray(submap.points, dtype=float)
-    obstacle = np.asarray(submap.obstacle, dtype=bool)
     if len(pts) < params.min_points:
         return "too few points"
-    if obstacle.sum() < params.min_obstacle_points:
-        return "too few obstacle points"
-    kp, _, _ = voxel_filter(pts[obstacle], np.ones(int(obstacle.sum()), bool), np.zeros(int(obstacle.sum())), params.keypoint_resolution_m)
+    selected = np.zeros(len(pts), bool)
+    if params.keypoints is not KeypointSelection.GEOMETRY:
+        selected |= np.asarray(submap.obstacle, dtype=bool)
+    if params.keypoints is not KeypointSelection.OBSTACLES:
+        selected |= surface_variation(pts, params.saliency_radius_m) >= params.min_surface_variation
+    n = int(selected.sum())
+    if n < params.min_selected_points:
+        return f"too few {_SELECTED[params.keypoints]} points"
+    kp, _, _ = voxel_filter(pts[selected], np.ones(n, bool), np.zeros(n), params.keypoint_resolution_m)
     known = submap.voxels.known_fraction(kp, params.descriptor_radius_m)
     points = kp[known >= params.min_known_fraction]
     rng = np.random.default_rng([params.seed, submap.index, len(points)])
@@ -274,6 +324,10 @@ def _within(T: np.ndarray, prior: Prior | None, bound: float) -> bool:
     return bool(np.all(np.abs(T[:3, 3] - prior.T_a_b[:3, 3]) <= bound * prior.sigma_xyz))
 
 
+def _refine(source: np.ndarray, a: Keypoints, T0: np.ndarray, dof: int, params: MatcherParams) -> IcpResult | None:
+    return icp(source, a.cloud, a.normals, T0, dof, params.icp_max_distance_m, params.icp_iterations, min_pairs=params.min_icp_pairs, tree=a.tree)
+
+
 def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior | None = None) -> MatchResult:
     """Thesis 6.1.2 for one pair: ``T_a_b`` mapping points of ``b`` into ``a``."""
     res = MatchResult(a.key, b.key)
@@ -296,7 +350,7 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
             continue
         seen.add(key)
         pa, pb = a.points[corr[members, 0]], b.points[corr[members, 1]]
-        found = ransac(pa, pb, params.dof, params.ransac_inlier_m, params.ransac_iterations, rng, ids=corr[members])
+        found = ransac(pa, pb, params.ransac_dof, params.ransac_inlier_m, params.ransac_iterations, rng, ids=corr[members])
         if found is None:
             continue
         ia, ib = np.unique(corr[members[found.inliers], 0]), np.unique(corr[members[found.inliers], 1])
@@ -304,7 +358,7 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
         T = found.T_a_b
         if support < params.min_inliers:
             continue
-        if params.dof == 6 and max(map(abs, roll_pitch(T[:3, :3]))) > params.max_roll_pitch_initial_rad:
+        if params.ransac_dof == 6 and max(map(abs, roll_pitch(T[:3, :3]))) > params.max_roll_pitch_initial_rad:
             continue
         if not _within(T, prior, params.sigma_bound):
             continue
@@ -321,9 +375,9 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
         return res
     res.inliers = best[1]
     source, _, _ = voxel_filter(b.cloud, np.zeros(len(b.cloud), bool), np.zeros(len(b.cloud)), params.icp_point_resolution_m)
-    fit = icp(
-        source, a.cloud, a.normals, best[0], params.dof, params.icp_max_distance_m, params.icp_iterations, min_pairs=params.min_icp_pairs, tree=a.tree
-    )
+    fit = _refine(source, a, best[0], params.ransac_dof, params)
+    if fit is not None and params.mode is MatchMode.FOUR_SIX_D:  # 8.1.2's 4D+6D: the 4D result refined in 6D
+        fit = _refine(source, a, fit.T_a_b, 6, params)
     res.timings["icp"] = time.perf_counter() - t4
     res.icp = fit
     if fit is None:
@@ -371,7 +425,7 @@ def pair_key(a: SubmapKey, b: SubmapKey) -> PairKey:
 
 
 def _box(kp: Keypoints, S: np.ndarray) -> np.ndarray:
-    xy = kp.obstacle_xyz @ S[:3, :3].T[:, :2] + S[:2, 3]
+    xy = kp.selected_xyz @ S[:3, :3].T[:, :2] + S[:2, 3]
     return np.concatenate([xy.min(axis=0), xy.max(axis=0)])
 
 
@@ -460,6 +514,7 @@ class PairQueue:
 
 __all__ = [
     "Candidate",
+    "KeypointSelection",
     "Keypoints",
     "MatchMode",
     "MatchResult",
@@ -474,4 +529,5 @@ __all__ = [
     "match_pair",
     "pair_key",
     "prepare",
+    "surface_variation",
 ]

@@ -1,15 +1,17 @@
-"""Submap matching (thesis 6.1): the 4D solver and ICP on exact data, pairing (eq.
-6.1-6.4), and matches of submaps built from rendered stereo against the true transform."""
+"""Submap matching (thesis 6.1): the 4D solver and ICP on exact data, keypoint
+selection, pairing (eq. 6.1-6.4), and matches of submaps built from rendered stereo
+against the true transform, in the modes of 8.1.2."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from slam.lie import roll_pitch, rot_z, se3, yaw_of
-from slam.matcher import MatcherParams, MatchMode, PairQueue, evaluate_pair, match_pair, prepare
+from slam.lie import roll_pitch, rot_z, rot_zyx, se3, yaw_of
+from slam.matcher import KeypointSelection, MatcherParams, MatchMode, PairQueue, evaluate_pair, match_pair, prepare, surface_variation
 from slam.registration import fit_4d, fit_6d, icp, off_line_count, ransac, two_point_4d
 
 
@@ -96,13 +98,30 @@ def test_line_test_counts_points_off_the_line():
     assert off_line_count(np.vstack([line, off]), 0.5, 100, np.random.default_rng(0)) == 3
 
 
+def test_surface_variation_is_zero_on_a_plane_and_high_at_an_edge():
+    """Keypoint saliency: an exact plane has none; along a right-angled step (a rock's
+    or a rim's edge) the neighbourhood spans two planes."""
+    g = np.arange(-1.0, 1.0001, 0.05)
+    X, Y = np.meshgrid(g, g)
+    plane = np.column_stack([X.ravel(), Y.ravel(), 0.1 * X.ravel() - 0.2 * Y.ravel()])  # tilted: the measure is not height
+    assert np.max(surface_variation(plane, 0.2)) < 1e-9
+    wall = np.column_stack([np.zeros(len(g) ** 2), X.ravel(), (Y.ravel() + 1) / 2])  # x = 0, z 0..1
+    floor = plane[plane[:, 0] > 0] * [1, 1, 0]
+    step = np.vstack([floor, wall])
+    sv = surface_variation(step, 0.2)
+    at_edge = (np.abs(step[:, 0]) < 0.06) & (step[:, 2] < 0.06) & (np.abs(step[:, 1]) < 0.8)
+    far = (step[:, 0] > 0.4) & (np.abs(step[:, 1]) < 0.8)
+    assert np.min(sv[at_edge]) > MatcherParams().min_surface_variation
+    assert np.max(sv[far]) < 1e-9
+
+
 # ----------------------------------------------------------------------------- pairing
 
 
 class _Kp:
-    def __init__(self, key, obstacle_xyz):
+    def __init__(self, key, selected_xyz):
         self.key = key
-        self.obstacle_xyz = np.asarray(obstacle_xyz, float)
+        self.selected_xyz = np.asarray(selected_xyz, float)
 
 
 def _square(x0, y0, size):
@@ -164,10 +183,12 @@ def rendered():
     return a, b, far, flat
 
 
-@pytest.mark.parametrize("mode", ["4d", "6d"])
-def test_rendered_submaps_of_the_same_rocks_match(rendered, mode):
+@pytest.mark.parametrize(
+    "mode, keypoints", [("4d", "obstacles"), ("6d", "obstacles"), ("4d", "geometry"), ("4d", "both"), ("4d+6d", "both")]
+)
+def test_rendered_submaps_of_the_same_rocks_match(rendered, mode, keypoints):
     (A, O_a), (B, O_b), _, _ = rendered
-    p = MatcherParams(mode=mode)
+    p = MatcherParams(mode=mode, keypoints=keypoints)
     ka, kb = prepare(A, p), prepare(B, p)
     res = match_pair(ka, kb, p)
     assert res.success, res.reason
@@ -200,7 +221,43 @@ def test_non_overlapping_and_featureless_submaps_are_rejected(rendered):
     p = MatcherParams()
     res = match_pair(prepare(A, p), prepare(far, p), p)
     assert not res.success
-    assert prepare(flat, p) == "too few obstacle points"
+    reasons = {"obstacles": "too few obstacle points", "geometry": "too few salient points", "both": "too few obstacle or salient points"}
+    for selection, reason in reasons.items():
+        assert prepare(flat, MatcherParams(keypoints=selection)) == reason
+
+
+def test_geometry_keypoints_reach_beyond_the_obstacles(rendered):
+    """Geometry keypoints (9.3) include salient points away from every obstacle point;
+    ``both`` keeps all of the thesis's obstacle keypoints and adds them."""
+    (A, _), _, _, _ = rendered
+    obstacles = prepare(A, MatcherParams(keypoints="obstacles"))
+    geometry = prepare(A, MatcherParams(keypoints="geometry"))
+    both = prepare(A, MatcherParams(keypoints="both"))
+    obstacle_points = np.asarray(A.points)[np.asarray(A.obstacle)]
+    d = np.min(np.linalg.norm(geometry.points[:, None] - obstacle_points[None], axis=2), axis=1)
+    assert np.sum(d > 0.3) >= 20
+    d_both = np.min(np.linalg.norm(obstacles.points[:, None] - both.points[None], axis=2), axis=1)
+    assert np.all(d_both < 0.1)  # each obstacle keypoint is in both's voxel of it
+    assert len(both.points) > len(obstacles.points)
+
+
+def test_4d_6d_recovers_a_roll_pitch_offset_that_4d_cannot(rendered):
+    """8.1.2's 4D+6D: when an origin's roll and pitch are off (here B's frame tilted by
+    0.6 deg roll and -0.5 deg pitch, under the 1 deg check), the 4D match cannot
+    represent the tilt; the 6D ICP after the 4D alignment recovers most of it."""
+    (A, O_a), (B, O_b), _, _ = rendered
+    tilt = rot_zyx(math.radians(0.6), math.radians(-0.5), 0.0)
+    tilted = replace(B, points=np.asarray(B.points, float) @ tilt.T)  # p_B' = tilt p_B
+    T_true = np.linalg.inv(O_a) @ O_b @ se3(tilt.T, np.zeros(3))
+    found = {}
+    for mode in ("4d", "4d+6d"):
+        p = MatcherParams(mode=mode, keypoints="both")  # obstacle keypoints alone find no hypothesis for the tilted pair
+        res = match_pair(prepare(A, p), prepare(tilted, p), p)
+        assert res.success, (mode, res.reason)
+        assert errors(res.T_a_b, T_true)[0] < 0.1
+        found[mode] = math.degrees(math.hypot(*np.subtract(roll_pitch(res.T_a_b[:3, :3]), roll_pitch(T_true[:3, :3]))))
+    assert found["4d"] > 0.75  # the whole tilt (0.78 deg) stays
+    assert found["4d+6d"] < 0.35
 
 
 def test_params_validation():
@@ -209,6 +266,10 @@ def test_params_validation():
     with pytest.raises(ValueError, match="alpha=-1"):
         MatcherParams(alpha=-1)
     assert MatcherParams(mode="6d").mode is MatchMode.SIX_D
+    assert MatcherParams(mode="4d+6d").mode is MatchMode.FOUR_SIX_D
+    with pytest.raises(ValueError, match="keypoints"):
+        MatcherParams(keypoints="edges")
+    assert MatcherParams(keypoints="geometry").keypoints is KeypointSelection.GEOMETRY
 
 
 def _chain(graph, robot: str, target: np.ndarray, frames: int, sigma_m: float) -> None:

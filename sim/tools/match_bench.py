@@ -1,9 +1,11 @@
 """Submap matching benchmark (thesis 8.1, 8.1.2): time per stage and the share of
-correct matches, 4D against 6D, on submaps built from rendered stereo along crossing
-paths through a rocky area (:mod:`sim.tools.rocky_scene`), each pair against its true
-transform.
+correct matches, for the matching modes (4D, 6D, 4D+6D) and keypoint selections, on
+submaps built from rendered stereo along crossing paths through a scene of
+:mod:`sim.tools.rocky_scene` (rocky, or rough ground with few rocks), each pair
+against its true transform.
 
-    python -m sim.tools.match_bench [--paths N] [--out results/match_bench.json]
+    python -m sim.tools.match_bench [--paths N] [--scene rocky rough] [--mode 4d 6d 4d+6d]
+        [--keypoints obstacles geometry both] [--out results/match_bench.json]
 
 Thesis (8.1): keypoints and features 0.39 s per map, feature matching 3.07 s per pair,
 Hough voting 0.02 s, ICP 2.38 s. Stage names here: ``keypoints`` (suitability and
@@ -18,13 +20,15 @@ import argparse
 import json
 import math
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from sim.tools.rocky_scene import RockyScene
+from sim.tools.rocky_scene import SCENES, RockyScene
 from slam.lie import yaw_of
-from slam.matcher import MatcherParams, match_pair, prepare
+from slam.matcher import KeypointSelection, MatcherParams, MatchMode, match_pair, prepare
+from slam.submap import Submap
 
 # Straight drives through the 20 m rocky scene: (start, end) xy in metres.
 PATHS = [
@@ -40,68 +44,85 @@ PATHS = [
 CORRECT_M, CORRECT_DEG = 0.3, 3.0  # a match this close to the truth counts as correct
 
 
-def run(paths: int) -> dict:
-    scene = RockyScene()
+def build(paths: int, scene: str = "rocky") -> list[tuple[Submap, np.ndarray]]:
+    """Submaps of the first ``paths`` drives through ``scene`` with their true origins."""
+    rendered = RockyScene(scene=scene)
     try:
-        built = [scene.submap("bench", i, *PATHS[i]) for i in range(paths)]
+        return [rendered.submap("bench", i, *PATHS[i]) for i in range(paths)]
     finally:
-        scene.close()
+        rendered.close()
+
+
+def evaluate(built: list[tuple[Submap, np.ndarray]], params: MatcherParams) -> dict:
+    """Every pair of ``built`` matched without a prior, against its true transform."""
+    t0 = time.perf_counter()
+    kps = [prepare(s, params) for s, _ in built]
+    keypoint_s = (time.perf_counter() - t0) / len(built)
+    stages: dict[str, list[float]] = {"keypoints": [keypoint_s]}
+    correct = wrong = rejected = 0
+    errors = []
+    for i in range(len(built)):
+        for j in range(i + 1, len(built)):
+            if isinstance(kps[i], str) or isinstance(kps[j], str):
+                continue
+            res = match_pair(kps[i], kps[j], params)
+            for k, v in res.timings.items():
+                stages.setdefault(k, []).append(v)
+            if not res.success:
+                rejected += 1
+                continue
+            D = np.linalg.solve(np.linalg.solve(built[i][1], built[j][1]), res.T_a_b)
+            e_t, e_yaw = float(np.linalg.norm(D[:3, 3])), math.degrees(abs(yaw_of(D[:3, :3])))
+            ok = e_t < CORRECT_M and e_yaw < CORRECT_DEG
+            correct += ok
+            wrong += not ok
+            errors.append((e_t, e_yaw))
+    suitable = [k for k in kps if not isinstance(k, str)]
+    stages["features"] = [sum(stages.get("features", [0.0])) / max(len(suitable), 1)]  # once per submap, on first use
+    e = np.asarray(errors).reshape(-1, 2)
+    return {
+        "submaps": len(built),
+        "suitable": len(suitable),
+        "unsuitable": dict(Counter(k for k in kps if isinstance(k, str))),
+        "keypoints_median": float(np.median([len(k.points) for k in suitable])) if suitable else 0.0,
+        "pairs_tried": correct + wrong + rejected,
+        "correct": correct,
+        "wrong": wrong,
+        "rejected": rejected,
+        "translation_error_m_median": float(np.median(e[:, 0])) if len(e) else None,
+        "yaw_error_deg_median": float(np.median(e[:, 1])) if len(e) else None,
+        "stage_s": {k: {"mean": float(np.mean(v)), "max": float(np.max(v))} for k, v in stages.items()},
+    }
+
+
+def run(paths: int, scenes: list[str], modes: list[str], keypoints: list[str]) -> dict:
     out = {}
-    for mode in ("4d", "6d"):
-        params = MatcherParams(mode=mode)
-        t0 = time.perf_counter()
-        kps = [prepare(s, params) for s, _ in built]
-        keypoint_s = (time.perf_counter() - t0) / len(built)
-        stages: dict[str, list[float]] = {"keypoints": [keypoint_s]}
-        correct = wrong = rejected = 0
-        errors = []
-        for i in range(len(built)):
-            for j in range(i + 1, len(built)):
-                if isinstance(kps[i], str) or isinstance(kps[j], str):
-                    continue
-                res = match_pair(kps[i], kps[j], params)
-                for k, v in res.timings.items():
-                    stages.setdefault(k, []).append(v)
-                if not res.success:
-                    rejected += 1
-                    continue
-                D = np.linalg.solve(np.linalg.solve(built[i][1], built[j][1]), res.T_a_b)
-                e_t, e_yaw = float(np.linalg.norm(D[:3, 3])), math.degrees(abs(yaw_of(D[:3, :3])))
-                ok = e_t < CORRECT_M and e_yaw < CORRECT_DEG
-                correct += ok
-                wrong += not ok
-                errors.append((e_t, e_yaw))
-        suitable = sum(not isinstance(k, str) for k in kps)
-        stages["features"] = [sum(stages.get("features", [0.0])) / max(suitable, 1)]  # once per submap, on first use
-        e = np.asarray(errors).reshape(-1, 2)
-        out[mode] = {
-            "submaps": len(built),
-            "suitable": suitable,
-            "pairs_tried": correct + wrong + rejected,
-            "correct": correct,
-            "wrong": wrong,
-            "rejected": rejected,
-            "translation_error_m_median": float(np.median(e[:, 0])) if len(e) else None,
-            "yaw_error_deg_median": float(np.median(e[:, 1])) if len(e) else None,
-            "stage_s": {k: {"mean": float(np.mean(v)), "max": float(np.max(v))} for k, v in stages.items()},
-        }
+    for scene in scenes:
+        built = build(paths, scene)
+        for kp in keypoints:
+            for mode in modes:
+                out[f"{scene} {kp} {mode}"] = evaluate(built, MatcherParams(mode=mode, keypoints=kp))
     return out
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--paths", type=int, default=len(PATHS), help=f"submaps to build (at most {len(PATHS)})")
+    ap.add_argument("--scene", nargs="+", choices=sorted(SCENES), default=["rocky"], help="terrains of sim.tools.rocky_scene")
+    ap.add_argument("--mode", nargs="+", choices=[m.value for m in MatchMode], default=[m.value for m in MatchMode])
+    ap.add_argument("--keypoints", nargs="+", choices=[k.value for k in KeypointSelection], default=[KeypointSelection.OBSTACLES.value])
     ap.add_argument("--out", type=Path, default=Path("results/match_bench.json"))
     args = ap.parse_args(argv)
     if not 2 <= args.paths <= len(PATHS):
         ap.error(f"--paths must be between 2 and {len(PATHS)}")
-    result = run(args.paths)
+    result = run(args.paths, args.scene, args.mode, args.keypoints)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
-    for mode, r in result.items():
+    for name, r in result.items():
         stages = ", ".join(f"{k} {v['mean']:.3f} s" for k, v in r["stage_s"].items())
         print(
-            f"{mode}: {r['suitable']}/{r['submaps']} submaps suitable; {r['pairs_tried']} pairs: {r['correct']} correct, "
+            f"{name}: {r['suitable']}/{r['submaps']} submaps suitable {r['unsuitable']}, {r['keypoints_median']:.0f} keypoints; "
+            f"{r['pairs_tried']} pairs: {r['correct']} correct, "
             f"{r['wrong']} wrong, {r['rejected']} rejected; median error {r['translation_error_m_median']} m, "
             f"{r['yaw_error_deg_median']} deg; per stage: {stages}"
         )

@@ -3,7 +3,12 @@ tests and benchmark (``sim.tools.match_bench``): a stereo head (LRU mast camera:
 1.2 m up, 25 deg down) is moved along straight paths; each pair is rendered, matched
 by SGBM, classified (5.1.1) and integrated into a submap (5.1.2) with the true camera
 poses, so the submaps carry only stereo and discretisation errors. The submap origin
-is the gravity-aligned head pose at the path's start."""
+is the gravity-aligned head pose at the path's start.
+
+Two scenes (:data:`SCENES`): ``rocky``, 300 rocks of 0.3-1.0 m on gently rough ground,
+and ``rough``, Etna-like ground (the etna preset's roughness and the Etna scenario's
+craters, rock sizes and density: 40 rocks of 0.15-0.8 m on 400 m2) where rocks are few
+and the ground itself carries the structure (thesis 9.3)."""
 
 from __future__ import annotations
 
@@ -29,18 +34,26 @@ BASELINE_M, HFOV_DEG = 0.09, 50.6
 HEAD_HEIGHT_M, PITCH_DEG = 1.2, 25.0
 
 
-class RockyScene:
-    """A 20 m terrain with ``rocks`` rocks and a mocap stereo head."""
+# terrain keys (sim.scenario.TerrainConfig) of the scenes; ``rough`` follows etna_two_rovers.yaml
+SCENES: dict[str, dict] = {
+    "rocky": {"craters": {"count": 0}, "rocks": {"count": 300, "diameter_m": [0.3, 1.0]}},
+    "rough": {
+        "preset": "etna",
+        "roughness_m": 0.07,
+        "craters": {"count": 6, "radius_m": [1.0, 3.0], "depth_ratio": 0.15, "rim_height_ratio": 0.06},
+        "rocks": {"count": 40, "diameter_m": [0.15, 0.8], "power_law_exponent": 2.2},
+    },
+}
 
-    def __init__(self, seed: int = 5, rocks: int = 300, size_m: float = 20.0):
-        cfg = TerrainConfig.model_validate(
-            {
-                "size_m": size_m,
-                "craters": {"count": 0},
-                "rocks": {"count": rocks, "diameter_m": [0.3, 1.0], "clearance_m": 0.0},
-                "texture": {"size_px": 1024},
-            }
-        )
+
+class RockyScene:
+    """A 20 m terrain of scene ``scene`` (``rocks`` overrides its rock count) and a mocap
+    stereo head."""
+
+    def __init__(self, seed: int = 5, rocks: int | None = None, size_m: float = 20.0, scene: str = "rocky"):
+        keys = SCENES[scene]
+        rock_keys = {**keys["rocks"], "clearance_m": 0.0} | ({} if rocks is None else {"count": rocks})
+        cfg = TerrainConfig.model_validate({**keys, "size_m": size_m, "rocks": rock_keys, "texture": {"size_px": 1024}})
         self.terrain = generate_terrain(cfg, np.random.default_rng(seed), [((0.0, 0.0), 0.1)])
         root = mjcf.RootElement(model="rocky")
         add_terrain(root, self.terrain)
