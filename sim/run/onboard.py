@@ -244,6 +244,20 @@ class OnboardStack:
         self._schedule_graph()
         self._schedule_matching()  # the update may have placed a submap pairing could not
 
+    @property
+    def busy(self) -> bool:
+        """Whether the robot has work left once its sensors are off: a job on its lane, or
+        factors or submap matching no job has been queued for."""
+        matcher = self.agent.matcher
+        return self.lane.busy() or self.agent.dirty or (matcher is not None and matcher.has_work)
+
+    def finish_submap(self, now: float) -> None:
+        """The end of the mission, once the lane's real-time jobs are done: finish the active
+        submap (if it has images) as a ``filter_update`` job, so that it is sent and matched
+        like every other."""
+        if self.mapper is not None and self.mapper.builder.images:
+            self.lane.submit("filter_update", work=lambda: self._new_submap(now, "end"), on_done=lambda out, t: self._send(out))
+
     def detection(self, now: float, image: np.ndarray, rig: StereoRig, T_body_cam: np.ndarray) -> None:
         """Marker detection in a left image of any of the robot's rigs (thesis 6.2.1)."""
         if self.detect_markers and self.estimator.initialised:
