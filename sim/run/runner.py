@@ -178,7 +178,7 @@ class Run:
         self.recorder = recorder
         self.env = simpy.Environment()
         self.sim_time = 0.0
-        self.mission_s = 0.0  # when the sensors stopped: every route done, or duration_s
+        self.mission_s: float | None = None  # when the sensors stopped: every route done, duration_s, or a failure
         self.drain_end: str | None = None  # why the drain ended: "idle", "drain_s" or "duration_s"; None: no drain
         self.wall_s = 0.0
         t0 = time.perf_counter()
@@ -344,6 +344,8 @@ class Run:
             self.env.run(until=process)
         finally:
             self.sim_time = self.env.now
+            if self.mission_s is None:  # the run failed before its routes ended
+                self.mission_s = self.sim_time
             self.wall_s = time.perf_counter() - start + self.timers.seconds["setup"]
             self.close()
 
