@@ -611,6 +611,11 @@ class Scenario(StrictModel):
     description: str = ""
     seed: int = Field(0, ge=0)
     duration_s: PositiveFloat
+    drain_s: NonNegFloat = Field(
+        120.0,
+        description="once every route is done: the robots rest, sensors off, for up to this long (within duration_s) while "
+        "the last submaps are matched and queued jobs and messages finish; ends as soon as none is left",
+    )
     terrain: TerrainConfig = TerrainConfig()
     robots: list[RobotConfig] = Field(..., min_length=1)
     physics: PhysicsConfig = PhysicsConfig()

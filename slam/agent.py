@@ -48,7 +48,6 @@ from slam.messages import (
     Envelope,
     FrameSwitchMessage,
     LoopClosureMessage,
-    MatchAttemptMessage,
     MessageException,
     PoseEstimate,
     SubmapMessage,
@@ -64,7 +63,6 @@ KIND_POSE = "pose"
 KIND_DETECTION = "detection"
 KIND_FRAME_SWITCH = "frame_switch"
 KIND_SUBMAP = "submap"
-KIND_MATCH_ATTEMPT = "match_attempt"
 KIND_LOOP_CLOSURE = "loop_closure"
 
 
@@ -170,7 +168,6 @@ class AgentStats:
     detections_used: int = 0
     detections_rejected: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     unanswerable: int = 0  # detections of this robot at a time its buffer no longer (or not yet) holds
-    duplicate_closures: int = 0  # loop closures of a pair already closed (matchers racing on two robots)
     marginal_failures: int = 0  # marginal covariances gtsam could not compute (the previous one kept)
     graph_updates: list[UpdateStats] = field(default_factory=list)
     covariance_s: list[float] = field(default_factory=list)
@@ -215,8 +212,7 @@ class Agent:
         self._next_pose_t: float | None = None
         self._last_covariance_t = -math.inf
         self._detectors: dict[str, MarkerDetector] = {}
-        self.matcher = TeamMatcher(params.matching) if params.matching is not None else None
-        self._closed: set[tuple] = set()  # submap pairs with a loop closure in the graph
+        self.matcher = TeamMatcher(params.matching, name) if params.matching is not None else None
         self.graph.update()  # the prior on this robot's first submap origin: its map frame
 
     # ------------------------------------------------------------------ own sensors
@@ -374,20 +370,8 @@ class Agent:
                 self.matcher.add_submap(submap)
         return []
 
-    def _on_match_attempt(self, body: MatchAttemptMessage) -> list[Outgoing]:
-        if self.matcher is not None:
-            self.matcher.mark_attempted((body.robot_a, body.index_a), (body.robot_b, body.index_b))
-        return []
-
     def _on_loop_closure(self, body: LoopClosureMessage) -> list[Outgoing]:
-        """A submap match c, once per pair (matchers on two robots may race for it)."""
-        pair = ((body.robot_a, body.index_a), (body.robot_b, body.index_b))
-        if self.matcher is not None:
-            self.matcher.mark_attempted(*pair)
-        if pair in self._closed:
-            self.stats.duplicate_closures += 1
-            return []
-        self._closed.add(pair)
+        """A submap match c (one per pair: only the pair's owner matches it, :func:`slam.team_matcher.pair_owner`)."""
         if self.matcher is not None:
             self.matcher.stale = True
         self.graph.add_match(body.robot_a, body.frame_a, body.robot_b, body.frame_b, body.T_a_b, body.cov)
@@ -417,7 +401,6 @@ class Agent:
         PoseEstimate: _on_pose,
         FrameSwitchMessage: _on_frame_switch,
         SubmapMessage: _on_submap,
-        MatchAttemptMessage: _on_match_attempt,
         LoopClosureMessage: _on_loop_closure,
         DetectionMessage: _on_detection,
     }
@@ -443,6 +426,8 @@ class Agent:
             stats = self.graph.update(extra_iterations=self.params.join_iterations, t=now)
         self.stats.graph_updates.append(stats)
         self.dirty = False
+        if self.matcher is not None:
+            self.matcher.graph_updated(self.graph)
         if now - self._last_covariance_t >= self.params.covariance_period_s:
             self._last_covariance_t = now
             t0 = time.perf_counter()
@@ -463,16 +448,8 @@ class Agent:
         """Pairing (thesis 6.1.1) with the graph's latest estimate: the number of queued pairs."""
         return self.matcher.pair(self.graph) if self.matcher is not None else 0
 
-    def begin_match(self) -> tuple[list[Outgoing], Candidate | None]:
-        """The best queued pair (6.1.2), announced to the team before it is matched."""
-        cand = self.matcher.next_candidate() if self.matcher is not None else None
-        if cand is None:
-            return [], None
-        (ra, ia), (rb, ib) = cand.pair
-        return [self._outgoing(KIND_MATCH_ATTEMPT, MatchAttemptMessage(ra, ia, rb, ib))], cand
-
-    def finish_match(self, cand: Candidate, t: float) -> tuple[list[Outgoing], MatchRecord]:
-        """Match the pair: a loop closure for the team (and this robot's graph) on success."""
+    def attempt_match(self, cand: Candidate, t: float) -> tuple[list[Outgoing], MatchRecord]:
+        """Match a queued pair (6.1.2): a loop closure for the team (and this robot's graph) on success."""
         record = self.matcher.attempt(cand, t)
         if self.faults is not None:
             res = record.result

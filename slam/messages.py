@@ -13,9 +13,11 @@ receiver applies each exactly once whatever the network does. The types:
 - :class:`DetectionMessage`: a robot detection ``d`` (eq. 4.7) or a landmark observation
   ``o``, with the detecting robot's own pose estimate at the detection time.
 - :class:`SubmapMessage`: a finished submap (thesis 5.2.1), sent once to each robot.
-- :class:`MatchAttemptMessage`: a pair of submaps a robot's matcher took up (thesis 6.1:
-  matchers on several robots share what they tried, so no pair is tried twice).
 - :class:`LoopClosureMessage`: a submap match ``c`` (6.1.2) with its covariance.
+
+The thesis's robots also announce the pairs their matchers take up (3.3); here each pair
+has one owner that matches it (:func:`slam.team_matcher.pair_owner`), so there is
+nothing to announce.
 
 Layout (little-endian): magic ``MYSL``, version u8, type u8, origin (u8 length +
 UTF-8), sequence u32, then the type's body. Poses are 3x4 float64 (the last row of a
@@ -49,8 +51,7 @@ class MessageType(IntEnum):
     FRAME_SWITCH = 2
     DETECTION = 3
     SUBMAP = 4
-    MATCH_ATTEMPT = 5
-    LOOP_CLOSURE = 6
+    LOOP_CLOSURE = 6  # 5 was a match attempt
 
 
 @dataclass(frozen=True)
@@ -104,16 +105,6 @@ class SubmapMessage:
 
 
 @dataclass(frozen=True)
-class MatchAttemptMessage:
-    """The pair of submaps ``(robot_a, index_a)``, ``(robot_b, index_b)`` is being tried."""
-
-    robot_a: str
-    index_a: int
-    robot_b: str
-    index_b: int
-
-
-@dataclass(frozen=True)
 class LoopClosureMessage:
     """c: submap ``index_b`` of ``robot_b`` (local frame ``frame_b``) seen from submap
     ``index_a`` of ``robot_a`` (local frame ``frame_a``): ``s_b = s_a (+) T_a_b``."""
@@ -128,7 +119,7 @@ class LoopClosureMessage:
     cov: np.ndarray
 
 
-Body = PoseEstimate | FrameSwitchMessage | DetectionMessage | SubmapMessage | MatchAttemptMessage | LoopClosureMessage
+Body = PoseEstimate | FrameSwitchMessage | DetectionMessage | SubmapMessage | LoopClosureMessage
 
 
 @dataclass(frozen=True)
@@ -273,11 +264,6 @@ def encode(origin: str, seq: int, body: Body) -> bytes:
         w.text(body.robot)
         w.i32(body.index)
         w.blob(body.data)
-    elif isinstance(body, MatchAttemptMessage):
-        kind = MessageType.MATCH_ATTEMPT
-        for robot, index in ((body.robot_a, body.index_a), (body.robot_b, body.index_b)):
-            w.text(robot)
-            w.i32(index)
     elif isinstance(body, LoopClosureMessage):
         kind = MessageType.LOOP_CLOSURE
         for robot, index, frame in ((body.robot_a, body.index_a, body.frame_a), (body.robot_b, body.index_b, body.frame_b)):
@@ -317,8 +303,6 @@ def decode(data: bytes) -> Envelope:
         body = DetectionMessage(pose, T, C, target or None, None if landmark < 0 else landmark, tag, dist)
     elif kind == MessageType.SUBMAP:
         body = SubmapMessage(r.text(), r.i32(), r.blob())
-    elif kind == MessageType.MATCH_ATTEMPT:
-        body = MatchAttemptMessage(r.text(), r.i32(), r.text(), r.i32())
     elif kind == MessageType.LOOP_CLOSURE:
         a, ia, fa, b, ib, fb = r.text(), r.i32(), r.i32(), r.text(), r.i32(), r.i32()
         body = LoopClosureMessage(a, ia, fa, b, ib, fb, r.pose(), r.cov())

@@ -117,18 +117,15 @@ def test_wrong_match_is_the_prediction_off_by_yaw_and_a_horizontal_shift_with_a_
 
 
 class _Matcher:
-    """What Agent.finish_match and the loop closure handler use of a TeamMatcher: one failed attempt."""
+    """What Agent.attempt_match and the loop closure handler use of a TeamMatcher: one failed attempt."""
 
     def __init__(self, prior: Prior):
-        self.records, self.prior, self.stale, self.attempted = [], prior, False, []
+        self.records, self.prior, self.stale = [], prior, False
 
     def attempt(self, cand, t):
         record = MatchRecord(t, 2, 5, self.prior, MatchResult(("lru1", 2), ("lru2", 5), reason="too few inliers"))
         self.records.append(record)
         return record
-
-    def mark_attempted(self, a, b):
-        self.attempted.append((a, b))
 
 
 def test_agent_sends_the_wrong_closure_and_keeps_it_marked_in_the_matcher_record():
@@ -138,7 +135,7 @@ def test_agent_sends_the_wrong_closure_and_keeps_it_marked_in_the_matcher_record
     faults = injector("[{type: wrong_match, rate: 1}]")
     agent = Agent("lru1", ["lru1", "lru2"], [], estimator=None, faults=faults)
     agent.matcher = _Matcher(Prior(predicted, np.full(3, 0.2)))
-    out, record = agent.finish_match(SimpleNamespace(pair=(("lru1", 2), ("lru2", 5))), 40.0)
+    out, record = agent.attempt_match(SimpleNamespace(pair=(("lru1", 2), ("lru2", 5))), 40.0)
     assert [m.kind for m in out] == ["loop_closure"] and agent.matcher.records == [record]
     assert record.result.success and record.result.reason == "injected"
     assert np.linalg.norm((se3_inv(predicted) @ record.result.T_a_b)[:3, 3]) == pytest.approx(1.0)

@@ -84,3 +84,20 @@ def test_realtime_job_preempts_a_long_background_job():
     assert done[0] == ("imu", pytest.approx(1.01))
     assert done[1] == ("match", pytest.approx(5.01))
     assert lane.utilization(5.01)[Device.CPU] == pytest.approx(1.0)
+
+
+def test_busy_counts_waiting_and_running_jobs_per_priority_until_their_results():
+    env = simpy.Environment()
+    lane = make_lane(env, max_queue=1, stages={"stereo_s": 1.0, "pairing_s": 1.0})
+    seen = []
+    lane.submit("stereo", lambda: None, lambda r, t: seen.append((t, lane.busy(Priority.REALTIME), lane.busy())))
+    lane.submit("pairing", lambda: None, priority=Priority.BACKGROUND)
+    lane.submit("stereo", lambda: None)
+    lane.submit("stereo", lambda: None)  # dropped: never busy
+    assert lane.busy(Priority.REALTIME) and lane.busy(Priority.BACKGROUND)
+    env.run(until=1.5)
+    assert seen == [(1.0, True, True)]  # the second real-time job waits, so does the background one
+    env.run(until=2.5)
+    assert not lane.busy(Priority.REALTIME) and lane.busy(Priority.BACKGROUND) and lane.busy()
+    env.run()
+    assert not lane.busy()

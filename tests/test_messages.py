@@ -9,7 +9,6 @@ from slam.messages import (
     DetectionMessage,
     FrameSwitchMessage,
     LoopClosureMessage,
-    MatchAttemptMessage,
     MessageException,
     PoseEstimate,
     SubmapMessage,
@@ -49,7 +48,6 @@ def test_every_message_type_round_trips_exactly():
         DetectionMessage(pose, _pose(rng), _cov(rng), target_robot="lru2", tag_id=5, distance_m=3.2),
         DetectionMessage(pose, _pose(rng), _cov(rng), landmark=0, tag_id=0),
         SubmapMessage("lru2", 7, bytes(range(256)) * 3),
-        MatchAttemptMessage("lru1", 3, "lru2", 11),
         LoopClosureMessage("lru1", 3, 4, "lru2", 11, 12, _pose(rng), _cov(rng)),
     ]
     for seq, body in enumerate(bodies, start=1):

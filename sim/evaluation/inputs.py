@@ -108,7 +108,6 @@ class ClosureInput:
     start_t: float | None  # the filter's first estimate: local frame 0
     switch_times: dict[int, float]  # the later local frames: index -> time of the switch
     matcher: TeamMatcher | None
-    duplicate_closures: int  # closures of a pair already closed, ignored
     detections: list[DetectionRecord]
 
 
@@ -219,7 +218,6 @@ def closure_inputs(run: Run) -> dict[str, ClosureInput]:
             start_t=_start_t(onboard),
             switch_times=_switch_times(onboard),
             matcher=agent.matcher,
-            duplicate_closures=agent.stats.duplicate_closures,
             detections=agent.detections,
         )
     return out

@@ -46,7 +46,8 @@ def match_metrics(closures: ClosureInput, origins: dict[str, dict[int, np.ndarra
         "attempts": len(records),
         "matches": sum(r.result.success for r in records),
         "rejected": dict(reasons),
-        "duplicate_closures_ignored": closures.duplicate_closures,
+        "pairs_untried": len(matcher.queue),  # queued by the last pairing, never matched: the run ended first
+        "submaps_waiting": matcher.waiting,  # received, never prepared
     }
     trans, yaw, rot, prior_trans, norm, rows = [], [], [], [], [], []
     stages: dict[str, list[float]] = {}
@@ -80,6 +81,12 @@ def match_metrics(closures: ClosureInput, origins: dict[str, dict[int, np.ndarra
     return out
 
 
+def pairs_attempted_twice(closures: dict[str, ClosureInput]) -> int:
+    """Submap pairs that more than one attempt (of any robots) went to: work done twice."""
+    pairs = Counter(tuple(sorted((r.result.a, r.result.b))) for c in closures.values() if c.matcher is not None for r in c.matcher.records)
+    return sum(n > 1 for n in pairs.values())
+
+
 def detection_calibration(name: str, closures: ClosureInput, truth: TeamTruth) -> dict[str, Any]:
     """Each detection's error in its own covariance's frame (right perturbation of the
     target pose in the detector's body), per component over the predicted sigmas."""
@@ -109,6 +116,8 @@ def loop_closure_section(closures: dict[str, ClosureInput], truth: TeamTruth) ->
     team = {
         "attempts": sum((m["matches"] or {}).get("attempts", 0) for m in robots.values()),
         "matches": sum((m["matches"] or {}).get("matches", 0) for m in robots.values()),
+        "pairs_untried": sum((m["matches"] or {}).get("pairs_untried", 0) for m in robots.values()),
+        "pairs_attempted_twice": pairs_attempted_twice(closures),
         "detections": sum(m["detections"]["count"] for m in robots.values()),
     }
     return {"team": team, "robots": robots}

@@ -131,7 +131,7 @@ def _robot_results(run: Run, out: Path, name: str, truth: inputs.TeamTruth, reco
         "stereo": stereo,
         **sections,
         "faults": fault_metrics(runtime.onboard),  # injected wrong measurements (sim/run/faults.py)
-        "health": inputs.health_report(runtime.onboard, run.sim_time) if runtime.onboard is not None else None,
+        "health": inputs.health_report(runtime.onboard, run.mission_s) if runtime.onboard is not None else None,
         "lane": {
             "utilization": runtime.lane.utilization(run.sim_time),
             "stages": {row["stage"]: {k: v for k, v in row.items() if k not in ("robot", "stage")} for row in stages},
@@ -307,6 +307,8 @@ def runtime_metrics(run: Run) -> dict[str, Any]:
     return {
         "wall_s": run.wall_s,
         "sim_s": run.sim_time,
+        "drain_s": run.sim_time - run.mission_s,  # after every route was done (docs/matching.md, "The end of a run")
+        "drain_end": run.drain_end,
         "real_time_factor": run.sim_time / run.wall_s if run.wall_s > 0 else None,
         "parts_s": parts,
     }

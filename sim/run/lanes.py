@@ -15,7 +15,7 @@ low-priority process (thesis 6.1: the matcher takes whatever processing time is 
 from __future__ import annotations
 
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum, StrEnum
@@ -90,6 +90,11 @@ class Lane:
         self.busy_s: dict[str, float] = defaultdict(float)
         self.wall_s = 0.0
         self._stages: dict[str, _StageQueue] = defaultdict(_StageQueue)
+        self._active: Counter[Priority] = Counter()  # jobs submitted and not yet done, per priority
+
+    def busy(self, priority: Priority | None = None) -> bool:
+        """Whether a job (of ``priority``, or of any) is waiting or running."""
+        return self._active[priority] > 0 if priority is not None else any(self._active.values())
 
     def device_for(self, preferred: str) -> str:
         """The FPGA if the lane has one and the job can use it, else the CPU."""
@@ -115,6 +120,7 @@ class Lane:
         request = self._request(resource, priority)
         waits = not request.triggered
         queue.waiting += waits
+        self._active[priority] += 1
         process = self.env.process(self._run(resource, request, waits, queue, record, work, on_done, priority))
         request.proc = process  # made outside the job's process: preemption must interrupt the job
         return process
@@ -150,6 +156,7 @@ class Lane:
             self.busy_s[record.device] += record.compute_s
         finally:
             resource.release(request)
+            self._active[priority] -= 1
         if on_done is not None:
             on_done(result, self.env.now)
 

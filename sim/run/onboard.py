@@ -210,8 +210,8 @@ class OnboardStack:
 
     def _schedule_matching(self) -> None:
         """Submap matching (thesis 6.1) as one background job at a time: ``pairing`` when
-        submaps arrived or a loop closure changed the graph, else ``matching`` of the
-        best queued pair, which is announced to the team as soon as it is taken."""
+        submaps arrived or the graph changed what pairing sees, else ``matching`` of the
+        best queued pair (of those this robot owns)."""
         matcher = self.agent.matcher
         if matcher is None or self._matching_queued or not matcher.has_work:
             return
@@ -219,13 +219,9 @@ class OnboardStack:
         if matcher.pairing_due:
             self.lane.submit("pairing", work=self.agent.pair_submaps, on_done=self._matching_done, priority=Priority.BACKGROUND)
             return
-        announce, cand = self.agent.begin_match()
-        if cand is None:  # every queued pair was taken by a peer meanwhile
-            self._matching_queued = False
-            return
-        self._send(announce)
+        cand = matcher.next_candidate()
         self.lane.submit(
-            "matching", work=lambda: self.agent.finish_match(cand, self.lane.env.now)[0], on_done=self._matching_done, priority=Priority.BACKGROUND
+            "matching", work=lambda: self.agent.attempt_match(cand, self.lane.env.now)[0], on_done=self._matching_done, priority=Priority.BACKGROUND
         )
 
     def _matching_done(self, out, _t: float) -> None:
@@ -246,6 +242,21 @@ class OnboardStack:
     def _graph_done(self, _stats, _t: float) -> None:
         self._graph_queued = False
         self._schedule_graph()
+        self._schedule_matching()  # the update may have placed a submap pairing could not
+
+    @property
+    def busy(self) -> bool:
+        """Whether the robot has work left once its sensors are off: a job on its lane, or
+        factors or submap matching no job has been queued for."""
+        matcher = self.agent.matcher
+        return self.lane.busy() or self.agent.dirty or (matcher is not None and matcher.has_work)
+
+    def finish_submap(self, now: float) -> None:
+        """The end of the mission, once the lane's real-time jobs are done: finish the active
+        submap (if it has images) as a ``filter_update`` job, so that it is sent and matched
+        like every other."""
+        if self.mapper is not None and self.mapper.builder.images:
+            self.lane.submit("filter_update", work=lambda: self._new_submap(now, "end"), on_done=lambda out, t: self._send(out))
 
     def detection(self, now: float, image: np.ndarray, rig: StereoRig, T_body_cam: np.ndarray) -> None:
         """Marker detection in a left image of any of the robot's rigs (thesis 6.2.1)."""

@@ -7,6 +7,10 @@ Sampling from the clock, not from separate SimPy processes, fixes the order of
 events within a tick, which keeps runs deterministic. Sensor data becomes jobs in each
 robot's lane (:mod:`sim.run.lanes`); the first real job is stereo matching
 (:mod:`slam.stereo`), whose depth is scored against rendered ground truth.
+
+When every route is done before ``duration_s``, the run drains (docs/matching.md, "The
+end of a run"): physics and sensors stop, each robot finishes its active submap, and the
+lanes and the network go on until no job and no message is left, or ``drain_s`` is up.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from scipy.spatial.transform import Rotation
 from comms import Network, StereoStream, raw_stereo_load
 from sim.robots import make_robot
 from sim.robots.base import Robot
-from sim.run.lanes import ComputeModel, Device, Lane
+from sim.run.lanes import ComputeModel, Device, Lane, Priority
 from sim.run.onboard import OnboardStack, body_camera_transform, calibration
 from sim.run.recording import Recorder
 from sim.scenario import Scenario
@@ -46,6 +50,7 @@ SETTLE_S = 2.0
 LANDER_ANTENNA_HEIGHT_M = 1.8  # above the lander base; a robot's is its class's ``antenna_height_m``
 DEPTH_BINS_M = (0.0, 2.0, 4.0, 6.0, 10.0, math.inf)
 DEPTH_SAMPLE_STRIDE = 2  # score every 2nd pixel in each direction
+DRAIN_POLL_S = 0.1  # while draining: how often the run checks for work left
 
 
 def _labels() -> list[str]:
@@ -173,6 +178,8 @@ class Run:
         self.recorder = recorder
         self.env = simpy.Environment()
         self.sim_time = 0.0
+        self.mission_s: float | None = None  # when the sensors stopped: every route done, duration_s, or a failure
+        self.drain_end: str | None = None  # why the drain ended: "idle", "drain_s" or "duration_s"; None: no drain
         self.wall_s = 0.0
         t0 = time.perf_counter()
         tags = scenario.assigned_tag_ids()
@@ -337,6 +344,8 @@ class Run:
             self.env.run(until=process)
         finally:
             self.sim_time = self.env.now
+            if self.mission_s is None:  # the run failed before its routes ended
+                self.mission_s = self.sim_time
             self.wall_s = time.perf_counter() - start + self.timers.seconds["setup"]
             self.close()
 
@@ -378,8 +387,40 @@ class Run:
                 progress(self.env.now, self.statuses())
             if all(r.robot.finished for r in self.robots.values()):
                 break
+        self.mission_s = self.env.now
         if progress is not None:
             progress(self.env.now, self.statuses())
+        if self.env.now < duration - 1e-9 and self.scenario.drain_s > 0:
+            yield from self._drain(min(duration, self.env.now + self.scenario.drain_s), progress, progress_every_s)
+
+    def _drain(self, until: float, progress: ProgressCallback | None, progress_every_s: float):
+        """Every route is done: the robots rest, sensors off. Each robot finishes its active
+        submap once its lane has no real-time job left (the last images are mapped);
+        the lanes and the network run on until no robot has work and no message is in
+        flight, or until ``until``."""
+        onboard = [r.onboard for r in self.robots.values() if r.onboard is not None]
+        unfinished = list(onboard)
+        next_progress = self.env.now + progress_every_s
+        while True:
+            for stack in [s for s in unfinished if not s.lane.busy(Priority.REALTIME)]:
+                stack.finish_submap(self.env.now)
+                unfinished.remove(stack)
+            if not unfinished and not any(s.busy for s in onboard) and self.messages_in_flight() == 0:
+                self.drain_end = "idle"
+                break
+            if self.env.now >= until - 1e-9:
+                self.drain_end = "duration_s" if until >= self.scenario.duration_s - 1e-9 else "drain_s"
+                break
+            yield self.env.timeout(min(DRAIN_POLL_S, until - self.env.now))
+            if progress is not None and self.env.now >= next_progress - 1e-9:
+                next_progress += progress_every_s
+                progress(self.env.now, self.statuses())
+        if progress is not None:
+            progress(self.env.now, self.statuses())
+
+    def messages_in_flight(self) -> int:
+        """Messages sent and neither delivered nor dropped yet."""
+        return sum(f.offered_msgs - f.delivered_msgs - sum(m for m, _ in f.dropped.values()) for f in self.network.accounting.flows.values())
 
     def statuses(self) -> dict[str, str]:
         return {name: r.robot.status for name, r in self.robots.items()}
