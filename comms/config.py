@@ -283,7 +283,6 @@ BASE_KINDS: dict[str, dict[str, Any]] = {
     "detection": {"priority": 1, "delivery": "reliable"},
     "frame_switch": {"priority": 1, "delivery": "reliable"},
     "loop_closure": {"priority": 1, "delivery": "reliable"},
-    "match_attempt": {"priority": 1, "delivery": "reliable"},
     "submap": {"priority": 3, "delivery": "reliable", "max_queued": 200},
 }
 
