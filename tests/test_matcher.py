@@ -286,7 +286,7 @@ def test_team_matcher_pairs_from_the_graph_and_its_closure_corrects_it(rendered)
     """Pairing with the graph's joint marginals (eq. 6.1-6.4), matching against the
     graph's prior, and the c factor pulling the graph toward the true relative pose."""
     from slam.graph import MultiRobotGraph
-    from slam.team_matcher import TeamMatcher
+    from slam.team_matcher import TeamMatcher, pair_owner
 
     (A, O_a), (B, O_b), _, _ = rendered
     graph = MultiRobotGraph("lru1")
@@ -299,7 +299,7 @@ def test_team_matcher_pairs_from_the_graph_and_its_closure_corrects_it(rendered)
     before, _ = errors(np.linalg.inv(graph.submap_origin("lru1", 3)) @ graph.submap_origin("lru2", 7), T_true)
     assert before > 0.2
 
-    matcher = TeamMatcher(MatcherParams(stereo_error_m=0.094))
+    matcher = TeamMatcher(MatcherParams(stereo_error_m=0.094), pair_owner(A.key, B.key))
     matcher.add_submap(A)
     matcher.add_submap(B)
     assert matcher.pair(graph) == 1

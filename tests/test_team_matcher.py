@@ -18,11 +18,11 @@ FRAMES = 5  # submaps 0..4 of each robot
 
 
 class _Keypoints:
-    """What pairing reads of a prepared submap: its key and its obstacle keypoints."""
+    """What pairing reads of a prepared submap: its key and its selected keypoints."""
 
-    def __init__(self, key, obstacle_xyz):
+    def __init__(self, key, selected_xyz):
         self.key = key
-        self.obstacle_xyz = np.asarray(obstacle_xyz, float)
+        self.selected_xyz = np.asarray(selected_xyz, float)
 
 
 def _graph(owner: str) -> MultiRobotGraph:
