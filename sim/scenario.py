@@ -385,6 +385,11 @@ class MappingConfig(StrictModel):
         SlamParam(ObstacleParams, "max_error_m"),
         description="points whose depth error (eq. 5.2c) exceeds this are dropped",
     )
+    pixel_error_px: PositiveFloat = slam_field(
+        SlamParam(SubmapParams, "pixel_error"),
+        SlamParam(ObstacleParams, "pixel_error"),
+        description="Δp of eq. 5.2 and 5.4, the disparity error of the mapping's stereo (thesis 0.5 px): sets the far cut with max_depth_error_m and the step thresholds",
+    )
     step_height_m: PositiveFloat = slam_field(
         SlamParam(ObstacleParams, "step_height_m"), description="h_max: highest step the robot drives over (thesis 5.1.1)"
     )
