@@ -259,6 +259,10 @@ class RouteConfig(StrictModel):
     scan_tilt_deg: float | None = Field(
         None, ge=-45, le=90, description="rover head tilt during scans (positive looks down; default: the preset's 25 deg)"
     )
+    head_sweep_deg: float | None = Field(
+        None, ge=0, le=90, description="rover head pan amplitude while driving, +- around straight ahead (default: the preset's; 0: none)"
+    )
+    head_sweep_period_s: PositiveFloat | None = Field(None, description="period of the rover head's sweep while driving (default: the preset's)")
     cruise_altitude_m: PositiveFloat = Field(3.0, description="hexacopter default height above terrain")
     land: bool = Field(False, description="hexacopter lands after the last waypoint")
     stuck_timeout_s: PositiveFloat = Field(15.0, description="no progress for this long counts as stuck")
@@ -388,7 +392,7 @@ class MappingConfig(StrictModel):
     pixel_error_px: PositiveFloat = slam_field(
         SlamParam(SubmapParams, "pixel_error"),
         SlamParam(ObstacleParams, "pixel_error"),
-        description="Δp of eq. 5.2 and 5.4, the disparity error of the mapping's stereo (thesis 0.5 px): sets the far cut with max_depth_error_m and the step thresholds",
+        description="Δp of eq. 5.2 and 5.4, the mapping's disparity error (thesis 0.5 px): with max_depth_error_m the far cut; the step thresholds",
     )
     step_height_m: PositiveFloat = slam_field(
         SlamParam(ObstacleParams, "step_height_m"), description="h_max: highest step the robot drives over (thesis 5.1.1)"

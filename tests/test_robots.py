@@ -130,6 +130,28 @@ def test_rover_flat_route_scan_wheels_and_imu():
     assert {tuple(np.sign(w.position_body[:2])) for w in wheels} == {(1, 1), (1, -1), (-1, 1), (-1, -1)}
 
 
+def test_rover_head_sweeps_while_driving_and_still_reaches_its_goal():
+    """With ``route.head_sweep_deg`` the head pans +-30 deg at the commanded period while the
+    wheels drive straight; without it, it looks ahead."""
+    route = {"speed_mps": 0.4, "head_sweep_deg": 30, "head_sweep_period_s": 4, "waypoints": [[3, -1]]}
+    world = make_world([{"name": "r1", "preset": "lru", "start": {"xy": [-3, -1], "yaw_deg": 0}, "route": route}], FLAT)
+    rover = world.robots[0]
+    pans, times = [], []
+
+    def sample(w):
+        if rover.phase == "drive":
+            pans.append(rover.head_angles()[0])
+            times.append(w.data.time)
+
+    run_until_finished(world, 40, sample)
+    assert rover.status == "done"
+    assert_reached(rover)
+    pans, times = np.array(pans), np.array(times)
+    assert math.radians(27) < pans.max() < math.radians(33) and -math.radians(33) < pans.min() < -math.radians(27)
+    crossings = times[1:][np.diff(np.sign(pans)) > 0]  # upward zero crossings, one per period
+    assert np.allclose(np.diff(crossings), 4.0, atol=0.2)
+
+
 def test_rover_rough_terrain_route():
     world = make_world(
         [{"name": "r1", "preset": "lru", "start": {"xy": [-4, -3], "yaw_deg": 0},

@@ -91,6 +91,8 @@ def test_cross_field_checks():
     copter = load_scenario(minimal(robots=[{"name": "a", "preset": "ardea", "route": {"waypoints": [[1, 1, 3]], "land": True}}]))
     assert copter.robots[0].route.waypoints[0].altitude_m == 3 and copter.robots[0].marker_count == 2
     assert any("carries 2 markers, got 3" in p for p in problems(minimal(robots=[{"name": "a", "preset": "ardea", "tag_ids": [4, 5, 6]}])))
+    copter_head = minimal(robots=[{"name": "a", "preset": "ardea", "route": {"head_sweep_deg": 30}}])
+    assert any("route.head_sweep_deg are for rovers with a pan-tilt head" in p for p in problems(copter_head))
 
 
 def test_presets_are_the_robot_registry():

@@ -40,6 +40,7 @@ from slam.lie import wrap_angle
 from slam.stereo import DEFAULT_MIN_DEPTH_M
 
 if TYPE_CHECKING:
+    from sim.scenario import RobotConfig
     from sim.world.terrain import Terrain
 
 ROTOR_RADIUS_M = 0.28
@@ -94,6 +95,14 @@ class Ardea(Robot):
     #: (standing, taking off, landing) gives SGBM mismatches that put points up to 2 m off.
     #: The margin covers the camera's height on its legs and the terrain's relief below.
     min_mapping_height_m = DEFAULT_MIN_DEPTH_M + 0.3
+
+    @classmethod
+    def check_config(cls, cfg: RobotConfig) -> None:
+        """The hexacopter's cameras are fixed: no head to tilt or sweep."""
+        head = [k for k in ("scan_tilt_deg", "head_sweep_deg", "head_sweep_period_s") if getattr(cfg.route, k) is not None]
+        if head:
+            raise ValueError(f"route.{', route.'.join(head)} are for rovers with a pan-tilt head, not preset {cfg.preset}")
+        super().check_config(cfg)
 
     def _build(self) -> None:
         root = self.mjcf_model

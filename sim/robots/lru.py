@@ -29,6 +29,11 @@ error) and drives at ``speed_mps``; a waypoint is reached within ``tolerance_m``
 ``scan`` the rover stops and pans its head a full turn (-180 -> +180 deg) in
 ``scan_duration_s`` (plus slewing to and from the start), its head tilted by
 ``route.scan_tilt_deg`` if set (e.g. up towards a lander's tag or another rover's mast).
+While driving, the head can sweep its pan sinusoidally, ``route.head_sweep_deg`` to each
+side over ``route.head_sweep_period_s`` (the preset's defaults: none), so that the views
+along a leg cover more than the 50 deg strip ahead and see rocks from several sides
+without stopping (the LRU looked around while driving, thesis 9.3); every image carries
+the head's encoder transform, as during scans.
 """
 
 from __future__ import annotations
@@ -63,6 +68,8 @@ MARKER_RADIUS_M = 0.11  # tag centres from the mast axis: the three tags just cl
 MARKER_ELEVATION_DEG = 35.0
 MARKER_AZIMUTHS_DEG = (0.0, 120.0, 240.0)
 PAN_SLEW_RPS = 1.0  # head pan speed when moving to/from a scan
+HEAD_SWEEP_DEG = 0.0  # default pan amplitude while driving: none
+HEAD_SWEEP_PERIOD_S = 10.0  # default period of the sweep
 TILT_GUARD_RAD = math.radians(35)  # beyond this roll/pitch the rover backs off ...
 TILT_GUARD_RELEASE_RAD = math.radians(25)  # ... until it is below this again
 BACKOFF_SPEED = 0.15  # m/s
@@ -268,6 +275,7 @@ class LRU(Robot):
                 else:
                     v, w = drive_command(xy, yaw, route.target_xy, route.cfg.speed_mps, DriveGains())
                     v, w = self._tilt_guard(t, tilt, v, w)
+                    self.pan_ref = self._sweep_pan(t)
         if self.phase == "scan":
             self.pan_ref = self._scan_pan(t - self._scan_t0)
             scan_tilt = self.cfg.route.scan_tilt_deg
@@ -291,6 +299,13 @@ class LRU(Robot):
                 return -BACKOFF_SPEED, 0.0
             self._backoff_t0 = None
         return v, w
+
+    def _sweep_pan(self, t: float) -> float:
+        """Pan reference while driving: ``head_sweep_deg * sin(2 pi t / head_sweep_period_s)``."""
+        route = self.cfg.route
+        amplitude = math.radians(HEAD_SWEEP_DEG if route.head_sweep_deg is None else route.head_sweep_deg)
+        period = HEAD_SWEEP_PERIOD_S if route.head_sweep_period_s is None else route.head_sweep_period_s
+        return amplitude * math.sin(2 * math.pi * t / period)
 
     def _scan_pan(self, dt: float) -> float | None:
         """Pan reference during a scan: slew to -180 deg, sweep a full turn to +180 deg
