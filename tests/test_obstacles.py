@@ -10,6 +10,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from slam.lie import se3
 from slam.obstacles import (
     CellHeight,
     HeightMap,
@@ -472,11 +473,13 @@ def _rendered_scores(rocks: int) -> dict[str, float]:
     obstacle cells (sim.evaluation.map_quality's criterion, one cell of tolerance)."""
     from scipy.ndimage import binary_dilation
 
+    from sim.evaluation.image_classification import ImageCells
     from sim.evaluation.map_quality import MapQualityParams, true_obstacle_cells
     from sim.tools.rocky_scene import RockyScene
     from slam.stereo import cut_far_points
 
     scene = RockyScene(seed=5, rocks=rocks)
+    cells, shifted = ImageCells(scene.calibration, ObstacleParams()), ImageCells(scene.calibration, ObstacleParams())
     one = np.ones((3, 3), bool)
     tp = flagged = true = found = pixels = in_range = 0
     try:
@@ -493,9 +496,20 @@ def _rendered_scores(rocks: int) -> dict[str, float]:
             seen = np.isfinite(cut_far_points(depth, scene.calibration))
             pixels += c.pixel_obstacles[seen].sum()
             in_range += seen.sum()
+            cells.add(depth, c.pixel_obstacles, T, [])
+            shifted.add(depth, c.pixel_obstacles, se3(np.eye(3), [0.3, 0.0, 0.0]) @ T, [])
+        union, off = cells.score(scene.terrain), shifted.score(scene.terrain)
     finally:
         scene.close()
-    return {"flagged": flagged, "true": true, "precision": tp / max(flagged, 1), "recall": found / max(true, 1), "pixel_share": pixels / in_range}
+    return {
+        "flagged": flagged,
+        "true": true,
+        "precision": tp / max(flagged, 1),
+        "recall": found / max(true, 1),
+        "pixel_share": pixels / in_range,
+        "images": union,  # all views' cells together (sim.evaluation.image_classification)
+        "images_shifted": off,  # the same with every camera placed 0.3 m off
+    }
 
 
 def test_rendered_ground_without_rocks_has_no_obstacles():
@@ -504,6 +518,7 @@ def test_rendered_ground_without_rocks_has_no_obstacles():
     s = _rendered_scores(rocks=0)
     assert s["true"] == 0
     assert s["flagged"] == 0 and s["pixel_share"] == 0
+    assert s["images"].mapped_cells == 0
 
 
 def test_rendered_rocks_above_the_step_height_are_found():
@@ -514,3 +529,6 @@ def test_rendered_rocks_above_the_step_height_are_found():
     assert s["true"] > 100
     assert s["precision"] > 0.9, s
     assert s["recall"] > 0.45, s
+    # the images' cells together, placed by the true poses, score as well; placed 0.3 m off, not
+    assert s["images"].precision > 0.9 and s["images"].recall > 0.5, s["images"].metrics()
+    assert s["images_shifted"].precision < 0.6, s["images_shifted"].metrics()

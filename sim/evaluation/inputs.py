@@ -21,6 +21,7 @@ import numpy as np
 from sim.evaluation.trajectory import Trajectory
 
 if TYPE_CHECKING:
+    from sim.evaluation.image_classification import ImageCells
     from sim.run.onboard import OnboardStack
     from sim.run.runner import Run
     from sim.scenario import MappingConfig
@@ -89,6 +90,7 @@ class MapInput:
     switch_times: dict[int, float]  # local frame index -> time of the switch into it (submap origins' truth)
     mapping: MappingConfig
     obstacle: ObstacleParams  # the classification it ran with (thesis 5.1.1)
+    image_cells: ImageCells | None  # its mapped images' obstacle cells at true camera poses
     own_submaps: list[Submap]  # its finished submaps
     active_images: int  # images in the submap under construction
     images_integrated: int
@@ -178,7 +180,7 @@ def slam_input(onboard: OnboardStack) -> SlamInput | None:
     )
 
 
-def map_input(onboard: OnboardStack) -> MapInput | None:
+def map_input(onboard: OnboardStack, image_cells: ImageCells | None = None) -> MapInput | None:
     """None for a robot without mapping (``slam.mapping.enabled`` off)."""
     mapper, estimator = onboard.mapper, onboard.estimator
     if mapper is None:
@@ -195,6 +197,7 @@ def map_input(onboard: OnboardStack) -> MapInput | None:
         switch_times=_switch_times(onboard),
         mapping=onboard.slam_cfg.mapping,
         obstacle=mapper.obstacle_params,
+        image_cells=image_cells,
         own_submaps=list(mapper.submaps),
         active_images=mapper.builder.images,
         images_integrated=mapper.images,

@@ -45,6 +45,13 @@ class MapQualityParams:
     lander_margin_m: float = 0.2
     obstacle: ObstacleParams = field(default_factory=ObstacleParams)  # the robot's classification criterion
 
+    @property
+    def robot_margin_m(self) -> float:
+        """Beyond a robot's body radius, how far its surroundings are left out of the
+        scores: the classification window's half-width and one cell (a ground cell that
+        close has the robot in its window and is rightly flagged for it)."""
+        return (self.obstacle.window_cells // 2 + 1) * self.obstacle.resolution_m
+
 
 
 class MapEvaluationError(ValueError):

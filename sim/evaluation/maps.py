@@ -113,6 +113,8 @@ def map_section(
     section["quality"] = quality.metrics()
     classification = own_submaps_on_truth(name, robot_map, truth, terrain)
     section["classification"] = classification.metrics() if classification is not None else None
+    cells = robot_map.image_cells
+    section["classification_images"] = cells.metrics(terrain) if cells is not None and cells.images else None
     origins = np.array([T_world_map @ T for T in poses.values()]).reshape(-1, 4, 4)[:, :3, 3]
     if recorder is not None:
         # the rolling obstacle map lives in the odometry frame (= the map frame) and has no
@@ -128,11 +130,10 @@ def map_section(
 def on_robots(world: np.ndarray, submap_of: np.ndarray, submaps: list[Submap], truth: TeamTruth, params: MapQualityParams) -> np.ndarray:
     """Points (n, 3, world) seen on or beside another robot than their submap's own (point i
     is in ``submaps[submap_of[i]]``): within its ``body_radius_m`` of its true position at
-    some time while the submap was built, plus the classification window's half-width and
-    one cell (a ground cell that close has the robot in its window and is rightly flagged for
-    it). The static truth holds no robots, so such points cannot be scored against it. (A
+    some time while the submap was built, plus :attr:`MapQualityParams.robot_margin_m`.
+    The static truth holds no robots, so such points cannot be scored against it. (A
     robot that moved during the submap takes the ground along its path out of the scores, too.)"""
-    margin = (params.obstacle.window_cells // 2 + 1) * params.obstacle.resolution_m
+    margin = params.robot_margin_m
     out = np.zeros(len(world), bool)
     order = np.argsort(submap_of, kind="stable")
     bounds = np.searchsorted(submap_of[order], np.arange(len(submaps) + 1))

@@ -167,7 +167,9 @@ def _evaluate_onboard(run: Run, out: Path, name: str, truth: inputs.TeamTruth, r
     robot_map, map_plot = _guarded(
         out,
         f"map evaluation of {name}",
-        lambda: maps.map_section(out, name, inputs.map_input(onboard), truth, run.terrain, recorder, list(run.robots).index(name)),
+        lambda: maps.map_section(
+            out, name, inputs.map_input(onboard, run.robots[name].image_cells), truth, run.terrain, recorder, list(run.robots).index(name)
+        ),
     )
     return {"filter": filter_section, "slam": slam, "map": robot_map}, RobotPlots(filter_plot, slam_plot, map_plot)
 

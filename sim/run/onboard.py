@@ -189,6 +189,7 @@ class OnboardStack:
         self.log = EstimateLog()
         self.slam_log = SlamLog()
         self.on_vo_result = None  # optional callback(result), e.g. the recording
+        self.on_mapped = None  # optional callback(frame_id, depth, classification), e.g. the evaluation
 
     # ------------------------------------------------------------------ the team
 
@@ -330,7 +331,9 @@ class OnboardStack:
         expressed in the current local frame (a switch may have happened since)."""
         est = self.estimator
         T_local_body = est.in_frame(frame.T_local_body, frame.frame_index)
-        self.mapper.integrate(frame.t, depth, left, T_local_body, frame.T_body_cam, est.T_first_current)
+        classification = self.mapper.integrate(frame.t, depth, left, T_local_body, frame.T_body_cam, est.T_first_current)
+        if self.on_mapped is not None:
+            self.on_mapped(frame.frame_id, depth, classification)
 
     def _check_partition(self, now: float) -> None:
         est = self.estimator

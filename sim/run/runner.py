@@ -28,10 +28,11 @@ import simpy
 from scipy.spatial.transform import Rotation
 
 from comms import Network, StereoStream, raw_stereo_load
+from sim.evaluation.image_classification import ImageCells
 from sim.robots import make_robot
 from sim.robots.base import Robot
 from sim.run.lanes import ComputeModel, Device, Lane, Priority
-from sim.run.onboard import OnboardStack, body_camera_transform, calibration
+from sim.run.onboard import MUJOCO_TO_OPENCV, OnboardStack, body_camera_transform, calibration
 from sim.run.recording import Recorder
 from sim.scenario import Scenario
 from sim.seeding import RandomStreams
@@ -150,6 +151,8 @@ class RobotRuntime:
     odom_every: int
     onboard: OnboardStack | None
     log: RobotLog = field(default_factory=RobotLog)
+    image_cells: ImageCells | None = None  # mapped images' obstacle cells at true camera poses
+    capture_truth: dict[int, tuple[np.ndarray, list]] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots
 
 
 class Timers:
@@ -275,7 +278,7 @@ class Run:
                 onboard.on_vo_result = lambda result, r=robot, o=onboard, n=every: (
                     self.recorder.log_vo(r.name, o.vo_rig, result) if result.frame_id % n == 0 else None
                 )
-        return RobotRuntime(
+        runtime = RobotRuntime(
             robot=robot,
             lane=lane,
             imu=imu,
@@ -288,6 +291,10 @@ class Run:
             odom_every=self._every(cfg.wheel_odometry.rate_hz, f"robots.{robot.name}.wheel_odometry"),
             onboard=onboard,
         )
+        if onboard is not None and onboard.mapper is not None:
+            runtime.image_cells = ImageCells(calibration(onboard.vo_rig), onboard.mapper.obstacle_params)
+            onboard.on_mapped = lambda frame_id, depth, c, r=runtime: self._score_image(r, frame_id, depth, c.pixel_obstacles)
+        return runtime
 
     # ------------------------------------------------------------------ network geometry
 
@@ -478,6 +485,8 @@ class Run:
                 T_body_cam = body_camera_transform(self.world.model, self.world.data, runtime.robot, rig.left_camera)
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
+                    if runtime.image_cells is not None:
+                        runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot))
                 onboard.detection(now, stereo.left, rig, T_body_cam)
             job = runtime.lane.submit(
                 "stereo",
@@ -489,6 +498,29 @@ class Run:
             )
             if job is None and for_vo:
                 runtime.onboard.stereo_dropped(frame)
+
+    def _camera_pose(self, camera: str) -> np.ndarray:
+        """True T_world_cam of a camera (OpenCV axes)."""
+        data, cam = self.world.data, self.world.model.camera(camera).id
+        T = np.eye(4)
+        T[:3, :3] = data.cam_xmat[cam].reshape(3, 3) @ MUJOCO_TO_OPENCV
+        T[:3, 3] = data.cam_xpos[cam]
+        return T
+
+    def _others(self, robot: Robot) -> list[tuple[np.ndarray, float]]:
+        """The other robots' true xy with their body radii."""
+        xpos = self.world.data.xpos
+        return [(xpos[body][:2].copy(), self.robots[name].robot.body_radius_m) for name, body in self._root_body.items() if name != robot.name]
+
+    def _score_image(self, runtime: RobotRuntime, frame_id: int, depth: np.ndarray, obstacle: np.ndarray) -> None:
+        """A mapped image's flags at its true camera pose (:mod:`sim.evaluation.image_classification`)."""
+        truth = runtime.capture_truth.pop(frame_id, None)
+        for stale in [k for k in runtime.capture_truth if k < frame_id]:  # frames never mapped
+            del runtime.capture_truth[stale]
+        if truth is not None:
+            t = time.perf_counter()
+            runtime.image_cells.add(depth, obstacle, *truth)
+            self.timers.add("evaluation", t)
 
     def _timed(self, part: str, fn, *args):
         t = time.perf_counter()
