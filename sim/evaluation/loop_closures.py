@@ -1,6 +1,7 @@
 """Loop closures against ground truth (thesis 8.1.2, 8.1.3): every submap match a robot
 computed and every detection it made, compared with the true transform; counts per
-outcome; calibration of the predicted uncertainty (the share of errors within 1, 2
+outcome, wrong matches (off by more than ``WRONG_MATCH_M`` or ``WRONG_MATCH_DEG``);
+calibration of the predicted uncertainty (the share of errors within 1, 2
 and 3 predicted sigmas). Goes into ``metrics.json`` under ``loop_closures``; reads a
 :class:`sim.evaluation.inputs.ClosureInput` per robot.
 
@@ -23,6 +24,8 @@ from sim.evaluation.statistics import StatisticsType, statistics
 from slam.lie import rotation_angle, so3_log, yaw_of
 
 SIGMA_LEVELS = (1, 2, 3)
+WRONG_MATCH_M = 0.3  # an accepted match off by more than this ...
+WRONG_MATCH_DEG = 3.0  # ... or by more than this (rotation) is wrong
 ERROR_STATISTICS = (StatisticsType.MEDIAN, StatisticsType.P90, StatisticsType.MAX)
 
 
@@ -48,6 +51,7 @@ def match_metrics(closures: ClosureInput, origins: dict[str, dict[int, np.ndarra
         "rejected": dict(reasons),
         "pairs_untried": len(matcher.queue),  # queued by the last pairing, never matched: the run ended first
         "submaps_waiting": matcher.waiting,  # received, never prepared
+        "wrong_matches": 0,  # accepted, but off by more than WRONG_MATCH_M or WRONG_MATCH_DEG
     }
     trans, yaw, rot, prior_trans, norm, rows = [], [], [], [], [], []
     stages: dict[str, list[float]] = {}
@@ -65,6 +69,7 @@ def match_metrics(closures: ClosureInput, origins: dict[str, dict[int, np.ndarra
         trans.append(e_t)
         yaw.append(math.degrees(e_yaw))
         rot.append(float(np.degrees(rotation_angle(D[:3, :3]))))
+        out["wrong_matches"] += e_t > WRONG_MATCH_M or rot[-1] > WRONG_MATCH_DEG
         prior_trans.append(float(np.linalg.norm(rec.prior.T_a_b[:3, 3] - true[:3, 3])))
         sigma = np.sqrt(np.diag(res.cov))
         norm += list(D[:3, 3] / sigma[3:]) + [yaw_of(D[:3, :3]) / sigma[2]]
@@ -116,6 +121,7 @@ def loop_closure_section(closures: dict[str, ClosureInput], truth: TeamTruth) ->
     team = {
         "attempts": sum((m["matches"] or {}).get("attempts", 0) for m in robots.values()),
         "matches": sum((m["matches"] or {}).get("matches", 0) for m in robots.values()),
+        "wrong_matches": sum((m["matches"] or {}).get("wrong_matches", 0) for m in robots.values()),
         "pairs_untried": sum((m["matches"] or {}).get("pairs_untried", 0) for m in robots.values()),
         "pairs_attempted_twice": pairs_attempted_twice(closures),
         "detections": sum(m["detections"]["count"] for m in robots.values()),
