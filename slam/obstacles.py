@@ -27,7 +27,10 @@ Pipeline per depth image (``classify_depth``)
    those two cells, taken back into the camera frame. The cell's traversability is
    ``h_diff / (h_max + Δd)``; above 1 it is an obstacle (``h_diff > h_max + Δd``).
    Cells holding a negative edge's rim get at least ``s_min / tan(max_slope_rad)``, the same
-   kind of ratio (> 1), so one map carries both classes.
+   kind of ratio (> 1), so one map carries both classes. Seen ground that falls by more
+   than ``h_max + Δd`` within ``h_max / tan(max_slope_rad)`` gets the ratio of its drop to
+   that (``steep_drops``, our addition: eq. 5.1's slope limit for visible ground, which the
+   window misses on slopes between 20 and about 37 deg).
 3. ``RollingObstacleMap``: a fixed-size grid on the same lattice, centred on the robot, that
    scrolls with it (cells still in view keep their value) and low-pass filters each new
    image's traversability per cell, ``v <- (1 - rate) v + rate * t`` (unknown cells start at
@@ -115,7 +118,7 @@ class HeightMap:
     height: np.ndarray  # cell height (mean or max of its points)
     h_diff: np.ndarray  # max - min cell height in the window
     threshold: np.ndarray  # h_max + Δd (eq. 5.4)
-    traversability: np.ndarray  # h_diff / threshold, at least s_min / tan(max slope) at negative edges
+    traversability: np.ndarray  # h_diff / threshold, at least the steep-drop ratio and s_min / tan(max slope) at negative edges
 
     @property
     def obstacles(self) -> np.ndarray:
@@ -340,9 +343,11 @@ def steep_drops(height: np.ndarray, params: ObstacleParams, margin: np.ndarray |
     cliffs and the cells of too steep slopes, not the flat before a cliff (the ground between
     it and the drop rises above the line). Our addition to thesis 5.1.1 (docs/mapping.md)."""
     reach = slope_reach_cells(params)
-    offsets, between, along = _descent_lines(reach)
     nx, ny = height.shape
     ratio = np.zeros((nx, ny))
+    if reach < 1:  # a drop of h_max is steeper than the maximal slope only within a cell: no test at this resolution
+        return ratio
+    offsets, between, along = _descent_lines(reach)
     limit = params.step_height_m + np.broadcast_to(np.asarray(margin, float), (nx, ny))
     padded = np.pad(np.asarray(height, float), reach, constant_values=np.nan)
     cells = np.argwhere(np.isfinite(height))

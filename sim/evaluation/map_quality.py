@@ -19,9 +19,9 @@ surface: map points on them count as errors, as they would for a map user.
   stereo error: a window height difference above the step height ``h_max``, or a cell from
   which the surface drops by more than ``h_max`` at more than the maximal slope (the
   negative-edge rule, eq. 5.1, with its drop condition, on every surface: cliff rims and
-  slopes too steep to drive, as the classification tests its visible ground); precision and recall of the
-  map's obstacle points' cells against them within the explored area, with one cell of
-  tolerance.
+  slopes too steep to drive, as the classification tests its visible ground); precision
+  and recall of the map's obstacle points' cells against them within the explored area,
+  with one cell of tolerance.
 """
 
 from __future__ import annotations
@@ -51,7 +51,6 @@ class MapQualityParams:
         scores: the classification window's half-width and one cell (a ground cell that
         close has the robot in its window and is rightly flagged for it)."""
         return (self.obstacle.window_cells // 2 + 1) * self.obstacle.resolution_m
-
 
 
 class MapEvaluationError(ValueError):
@@ -139,9 +138,10 @@ def true_obstacle_cells(terrain: Terrain, origin: np.ndarray, shape: tuple[int, 
 
 @dataclass(frozen=True, eq=False)
 class ObstacleScore:
-    """Obstacle cells of a map against the true ones (cells of the classification's ``resolution_m``; centres
-    (k, 2) in the world for the plot): flagged and true (``tp``), flagged only (``fp``), true
-    only (``missed``, true cells seen by the map that no flagged cell is next to)."""
+    """Obstacle cells of a map against the true ones (cells of the classification's
+    ``resolution_m``; centres (k, 2) in the world for the plot): flagged and true (``tp``),
+    flagged only (``fp``), true only (``missed``, true cells seen by the map that no
+    flagged cell is next to)."""
 
     precision: float | None
     recall: float | None
