@@ -334,8 +334,8 @@ def steep_drops(height: np.ndarray, params: ObstacleParams, margin: np.ndarray |
     """Slope ratio (nx, ny) of the cells of a 2.5D height map (NaN: no data) from which the
     surface falls by more than the robot can drive down, where it is seen: eq. 5.1's
     condition (a drop above ``h_max`` at more than the maximal slope) for visible ground,
-    which the window's step test (eq. 5.3) misses for slopes between the maximal slope and
-    about ``atan(h_max / window)``. For each cell ``p`` and each cell ``q`` within
+    which the window's step test (threshold of eq. 5.4) misses for slopes between the
+    maximal slope and about ``atan(h_max / window)``. For each cell ``p`` and each cell ``q`` within
     :func:`slope_reach_cells` whose surface between them lies below the line ``pq`` (the
     descent starts at ``p``), the ratio is ``(h_p - h_q) / (h_max + margin_p)``; above 1 the
     cell is untraversable. ``margin`` (a cell array or a number) is the height error the

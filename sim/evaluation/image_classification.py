@@ -16,7 +16,7 @@ import numpy as np
 from sim.evaluation.map_quality import MapQualityParams, ObstacleScore, score_obstacles
 from sim.world.terrain import Terrain
 from slam.obstacles import ObstacleParams
-from slam.stereo import StereoCalibration, cut_far_points
+from slam.stereo import StereoCalibration, cut_far_points, depth_to_points
 
 _OFFSET = 1 << 30  # cell indices are shifted by this into non-negative 31-bit halves of one key
 _COMPACT_EVERY = 64  # images between merges of the collected keys
@@ -48,11 +48,10 @@ class ImageCells:
         surroundings are not scored, :attr:`MapQualityParams.robot_margin_m` beyond)."""
         cal, p = self.calibration, self.params
         cut = cut_far_points(depth, cal, p.max_error_m, p.pixel_error)
-        v, u = np.nonzero(np.isfinite(cut))
-        z = cut[v, u].astype(float)
-        cam = np.column_stack([(u - cal.cx) / cal.focal_px * z, (v - cal.cy) / cal.focal_px * z, z])
+        seen = np.isfinite(cut)
+        cam = depth_to_points(cut, cal)[seen].astype(float)
         xy = (cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3])[:, :2]
-        flagged = obstacle[v, u]
+        flagged = obstacle[seen]
         on = np.zeros(len(xy), bool)
         margin = MapQualityParams(obstacle=p).robot_margin_m
         for centre, radius in robots:
