@@ -563,6 +563,145 @@ class SlamConfig(StrictModel):
     health: HealthConfig = HealthConfig()
 
 
+# --------------------------------------------------------------------------- realism
+
+
+class CameraRealism(StrictModel):
+    """Image formation of the cameras (sim/world/imaging.py; thesis 6.2.1: noise,
+    discretisation, over- and underexposure)."""
+
+    noise: bool | None = Field(None, description="photon shot noise and read noise of the thesis's Guppy PRO F-125B")
+    auto_exposure: bool | None = Field(None, description="exposure and gain follow the scene (saturation where it is bright)")
+    vignetting: float | None = Field(None, ge=0, lt=1, description="relative illumination lost at the image corners")
+    motion_blur: bool | None = Field(None, description="blur from the camera's rotation during the exposure")
+    right_gain_error_std: NonNegFloat | None = Field(None, description="std of the right camera's relative response error (drawn per robot)")
+
+
+class CalibrationRealism(StrictModel):
+    """What the robot's calibration got wrong (sim/world/calibration_errors.py): the true
+    cameras differ from the ones the SLAM stack believes in, by errors drawn per robot."""
+
+    stereo_rotation_deg: NonNegFloat | None = Field(None, description="std per axis of the right camera's rotation against the rectified pair")
+    baseline_error: NonNegFloat | None = Field(None, description="std of the relative stereo baseline error")
+    focal_error: NonNegFloat | None = Field(None, description="std of the relative focal length error (both cameras)")
+    camera_imu_rotation_deg: NonNegFloat | None = Field(None, description="std per axis of the camera-IMU rotation error")
+    camera_imu_translation_m: NonNegFloat | None = Field(None, description="std per axis of the camera-IMU translation error")
+    pan_tilt_offset_deg: NonNegFloat | None = Field(None, description="std of the pan and tilt encoders' zero offsets (robots with a pan-tilt head)")
+
+
+class ImuRealism(StrictModel):
+    """IMU errors beyond white noise and bias random walks (sim/world/sensors.py)."""
+
+    scale_factor: NonNegFloat | None = Field(None, description="std of each axis's relative scale factor error")
+    misalignment_deg: NonNegFloat | None = Field(None, description="std of each sensitive axis's misalignment")
+    g_sensitivity_dps_per_g: NonNegFloat | None = Field(None, description="std of each gyro axis's sensitivity to specific force")
+
+
+class WheelRealism(StrictModel):
+    """Wheel odometry errors the physics does not produce (sim/world/sensors.py): loose regolith and radius."""
+
+    radius_error: NonNegFloat | None = Field(None, description="std of the relative error of the radius the odometry assumes")
+    slip: NonNegFloat | None = Field(None, description="longitudinal slip ratio on level ground (wheels turn this much more than the ground passes)")
+    slip_per_10deg: NonNegFloat | None = Field(None, description="slip ratio added per 10 deg of uphill gradient (removed downhill)")
+    slip_std: NonNegFloat | None = Field(None, description="std of the slip ratio's variation with the soil (5 s correlation time)")
+
+
+class LightRealism(StrictModel):
+    """Lighting (sim/world/terrain.py): the sun, its shadows and a camera-fixed fill light."""
+
+    shadows: bool | None = Field(None, description="the sun casts shadows (costly on CPU rendering: docs/realism.md)")
+    sun_elevation_deg: float | None = Field(None, gt=0, le=90, description="default: the terrain preset's")
+    sun_azimuth_deg: float | None = Field(None, description="direction of the sun, counter-clockwise from +x (default: the terrain preset's)")
+    headlight: bool | None = Field(None, description="a fill light that moves with the camera (no real rover has one in daylight)")
+    albedo_contrast_scale: PositiveFloat | None = Field(
+        None, le=2.0, description="the regolith albedo texture's contrast (terrain.texture.contrast) times this"
+    )
+
+
+#: The values of each ``realism.profile``, and the one place they are set. ``ideal`` is
+#: the world before imperfections were modelled (for tests that need exact numbers);
+#: ``realistic`` is calibrated so that the filter's drift on Etna-like runs lands in the
+#: thesis's band (8.3: 0.7-2 % of distance; docs/realism.md); ``harsh`` doubles the
+#: calibration, IMU and wheel errors. Sources of the ``realistic`` values:
+#: - camera: Allied Vision Guppy PRO F-125B (thesis 7.1), with the sources of its noise,
+#:   exposure, vignetting and response spread in sim/world/imaging.py;
+#: - calibration: stereo rotation 0.04 deg and focal 0.2 % are a calibration's residual
+#:   plus what transport and temperature change afterwards (DLR CalDe/CalLab, Strobl and
+#:   Hirzinger 2008, reach 0.1-0.2 px reprojection error, 0.005-0.01 deg at the Guppy's
+#:   1333 px focal length; field rigs drift further: chosen at 4-8x of that, tuned
+#:   against the thesis's drift, docs/realism.md); baseline 0.1 % (0.09 mm of 9 cm);
+#:   camera-IMU 0.2 deg and 5 mm (hand-eye calibration, thesis 4.1 uses a calibrated
+#:   head); pan-tilt encoder offsets 0.1 deg (chosen);
+#: - IMU: Xsens MTi-10 data sheet (MT0605P, quoted from memory): gyro scale non-linearity
+#:   and misalignment 0.05 deg-class after factory calibration; g-sensitivity 0.001 deg/s/g
+#:   class for MEMS gyros (ADIS16407: 0.05 deg/s/g without compensation); scale 0.1 %;
+#: - wheels: slip on loose soil 2 % on level ground and about 5-10 % per 10 deg uphill
+#:   (Lindemann and Voorhees 2005, MER slip tests; quoted from memory), radius 1 %
+#:   (tyre compliance and sinkage);
+#: - light: shadows off by default (their cost on 2 cores, docs/realism.md), no headlight;
+#:   the albedo texture at half the ideal world's contrast (0.35 was chosen for SGBM to
+#:   match easily, design notes 6), so that more of the image comes from shading: tuned
+#:   against the thesis's drift (docs/realism.md).
+REALISM_PROFILES: dict[str, dict[str, dict[str, Any]]] = {
+    "ideal": {
+        "camera": {"noise": False, "auto_exposure": False, "vignetting": 0.0, "motion_blur": False, "right_gain_error_std": 0.0},
+        "calibration": {
+            "stereo_rotation_deg": 0.0,
+            "baseline_error": 0.0,
+            "focal_error": 0.0,
+            "camera_imu_rotation_deg": 0.0,
+            "camera_imu_translation_m": 0.0,
+            "pan_tilt_offset_deg": 0.0,
+        },
+        "imu": {"scale_factor": 0.0, "misalignment_deg": 0.0, "g_sensitivity_dps_per_g": 0.0},
+        "wheels": {"radius_error": 0.0, "slip": 0.0, "slip_per_10deg": 0.0, "slip_std": 0.0},
+        "light": {"shadows": False, "sun_elevation_deg": None, "sun_azimuth_deg": None, "headlight": True, "albedo_contrast_scale": 1.0},
+    },
+    "realistic": {
+        "camera": {"noise": True, "auto_exposure": True, "vignetting": 0.3, "motion_blur": True, "right_gain_error_std": 0.02},
+        "calibration": {
+            "stereo_rotation_deg": 0.04,
+            "baseline_error": 0.001,
+            "focal_error": 0.002,
+            "camera_imu_rotation_deg": 0.2,
+            "camera_imu_translation_m": 0.005,
+            "pan_tilt_offset_deg": 0.1,
+        },
+        "imu": {"scale_factor": 0.001, "misalignment_deg": 0.05, "g_sensitivity_dps_per_g": 0.001},
+        "wheels": {"radius_error": 0.01, "slip": 0.02, "slip_per_10deg": 0.07, "slip_std": 0.02},
+        "light": {"shadows": False, "sun_elevation_deg": None, "sun_azimuth_deg": None, "headlight": False, "albedo_contrast_scale": 0.5},
+    },
+}
+REALISM_PROFILES["harsh"] = {
+    **REALISM_PROFILES["realistic"],
+    "calibration": {k: 2 * v for k, v in REALISM_PROFILES["realistic"]["calibration"].items()},
+    "imu": {k: 2 * v for k, v in REALISM_PROFILES["realistic"]["imu"].items()},
+    "wheels": {k: 2 * v for k, v in REALISM_PROFILES["realistic"]["wheels"].items()},
+    "light": {**REALISM_PROFILES["realistic"]["light"], "shadows": True},
+}
+
+
+class RealismConfig(StrictModel):
+    """How far the simulated world departs from the ideal one. ``profile`` sets every
+    value (:data:`REALISM_PROFILES`); a key set in a section overrides its profile's."""
+
+    profile: Literal["ideal", "realistic", "harsh"] = "realistic"
+    camera: CameraRealism = CameraRealism()
+    calibration: CalibrationRealism = CalibrationRealism()
+    imu: ImuRealism = ImuRealism()
+    wheels: WheelRealism = WheelRealism()
+    light: LightRealism = LightRealism()
+
+    @model_validator(mode="after")
+    def _fill_from_profile(self) -> RealismConfig:
+        for section, values in REALISM_PROFILES[self.profile].items():
+            model = getattr(self, section)
+            missing = {k: v for k, v in values.items() if getattr(model, k) is None}
+            if missing:
+                object.__setattr__(self, section, model.model_copy(update=missing))
+        return self
+
+
 # --------------------------------------------------------------------------- faults
 
 
@@ -632,6 +771,7 @@ class Scenario(StrictModel):
     output: OutputConfig = OutputConfig()
     comms: CommsConfig = CommsConfig()
     slam: SlamConfig = SlamConfig()
+    realism: RealismConfig = RealismConfig()
     faults: list[FaultConfig] = Field([], description="injected failures, each a typed entry (`type: wrong_detection | wrong_match`)")
 
     def network_nodes(self) -> list[str]:

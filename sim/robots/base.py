@@ -115,6 +115,10 @@ class Robot(ABC):
     body_radius_m: ClassVar[float]
     #: Map only above this height over the take-off point (filter estimate, m); None: always.
     min_mapping_height_m: ClassVar[float | None] = None
+    #: Its cameras sit on a pan-tilt head whose encoders give ``T_body_cam``: pan about the
+    #: body's z axis, tilt about the cameras' x axis (their encoder offsets are calibration
+    #: errors, sim/world/calibration_errors.py).
+    pan_tilt_head: ClassVar[bool] = False
 
     @classmethod
     def check_config(cls, cfg: RobotConfig) -> None:

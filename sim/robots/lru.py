@@ -94,6 +94,7 @@ class LRU(Robot):
     default_imu_preset = "xsens_mti10"
     default_vo_rig = "head"
     has_wheel_odometry = True
+    pan_tilt_head = True
     antenna_height_m = 1.6  # on the mast
     body_radius_m = math.hypot(WHEEL_X_M, WHEEL_Y_M) + WHEEL_RADIUS_M  # wheel corners: 0.64 m
 

@@ -36,9 +36,11 @@ from sim.run.onboard import MUJOCO_TO_OPENCV, OnboardStack, body_camera_transfor
 from sim.run.recording import Recorder
 from sim.scenario import Scenario
 from sim.seeding import RandomStreams
+from sim.world.calibration_errors import CalibrationError, believed_body_camera, draw_calibration_errors, perturb_cameras
 from sim.world.camera_rig import StereoRig
 from sim.world.compose import World, build_world
-from sim.world.sensors import IMU_PRESETS, ImuModel, InertialAverager, StereoRenderer, WheelOdometryModel
+from sim.world.imaging import CameraImaging, imaging_params
+from sim.world.sensors import IMU_PRESETS, ImuErrors, ImuModel, InertialAverager, StereoRenderer, WheelErrors, WheelOdometryModel
 from sim.world.terrain import Terrain, generate_terrain
 from slam.agent import TeamMarker
 from slam.stereo import StereoMatcher
@@ -146,6 +148,8 @@ class RobotRuntime:
     imu_every: int
     camera_every: int
     renderers: list[StereoRenderer]
+    imaging: list[CameraImaging | None]  # per rig: image formation, None for ideal images
+    calibration_error: CalibrationError
     matchers: list[StereoMatcher]
     odometry: WheelOdometryModel | None
     odom_every: int
@@ -186,9 +190,16 @@ class Run:
         self.wall_s = 0.0
         t0 = time.perf_counter()
         tags = scenario.assigned_tag_ids()
-        self.terrain: Terrain = generate_terrain(scenario.terrain, self.streams.rng("terrain"), self._keep_clear())
+        self.terrain: Terrain = generate_terrain(
+            scenario.terrain, self.streams.rng("terrain"), self._keep_clear(), scenario.realism.light.albedo_contrast_scale
+        )
         robots = [make_robot(cfg, tags[cfg.name]) for cfg in scenario.robots]
         self.world: World = build_world(scenario, self.terrain, robots)
+        self.calibration_errors = {
+            r.name: draw_calibration_errors(r, scenario.realism.calibration, self.streams.rng("calibration", r.name)) for r in robots
+        }
+        for robot in robots:  # the true cameras; the SLAM stack keeps believing in the nominal ones
+            perturb_cameras(self.world.model, robot, self.calibration_errors[robot.name])
         self.tick_s = 1.0 / scenario.physics.control_rate_hz
         self.substeps = round(self.tick_s / scenario.physics.timestep_s)
         self._settle(robots)
@@ -262,12 +273,21 @@ class Run:
         cfg = robot.cfg
         cores = cfg.computer.cores or robot.default_cores
         lane = Lane(self.env, robot.name, cores, cfg.computer.fpga, ComputeModel(self.scenario.compute), self.scenario.compute.max_queue)
+        realism = self.scenario.realism
         preset = cfg.imu.preset or robot.default_imu_preset
-        imu = ImuModel(IMU_PRESETS[preset], cfg.imu.rate_hz, self.streams.rng("imu", robot.name))
+        imu_errors = ImuErrors.draw(realism.imu, self.streams.rng("imu_errors", robot.name))
+        imu = ImuModel(IMU_PRESETS[preset], cfg.imu.rate_hz, self.streams.rng("imu", robot.name), errors=imu_errors)
         odometry = None
         if robot.has_wheel_odometry:
-            odometry = WheelOdometryModel(cfg.wheel_odometry, self.streams.rng("wheel_odometry", robot.name))
-        renderers = [StereoRenderer(self.world.model, rig, cfg.camera) for rig in robot.stereo_rigs]
+            wheel_errors = WheelErrors.draw(realism.wheels, self.streams.rng("wheel_errors", robot.name))
+            odometry = WheelOdometryModel(cfg.wheel_odometry, self.streams.rng("wheel_odometry", robot.name), wheel_errors)
+        calib = self.calibration_errors[robot.name]
+        renderers = [StereoRenderer(self.world.model, rig, cfg.camera, calib.rigs[rig.name]) for rig in robot.stereo_rigs]
+        imaging = []
+        for rig in robot.stereo_rigs:
+            params = imaging_params(realism.camera, self.streams.rng("imaging", robot.name, rig.name))
+            rng = self.streams.rng("image_noise", robot.name, rig.name)
+            imaging.append(None if params is None else CameraImaging(params, rig.width, rig.height, rig.focal_px, rng))
         matchers = [StereoMatcher(calibration(rig)) for rig in robot.stereo_rigs]
         onboard = None
         if self.scenario.slam.enabled:
@@ -286,6 +306,8 @@ class Run:
             imu_every=self._every(cfg.imu.rate_hz, f"robots.{robot.name}.imu"),
             camera_every=self._every(cfg.camera.rate_hz, f"robots.{robot.name}.camera"),
             renderers=renderers,
+            imaging=imaging,
+            calibration_error=calib,
             matchers=matchers,
             odometry=odometry,
             odom_every=self._every(cfg.wheel_odometry.rate_hz, f"robots.{robot.name}.wheel_odometry"),
@@ -457,7 +479,7 @@ class Run:
                 if onboard is not None:
                     onboard.imu(now, accel, gyro)
             if runtime.odometry is not None and tick % runtime.odom_every == 0:
-                odom = runtime.odometry.measure(robot.wheel_states())
+                odom = runtime.odometry.measure(robot.wheel_states(), robot.rotation()[2, 0])
                 log.odom_t.append(now)
                 log.odom.append(odom)
                 if onboard is not None:
@@ -471,10 +493,13 @@ class Run:
         every = camera.depth_ground_truth_every
         with_depth = every > 0 and frame % every == 0
         runtime.log.frames += 1
-        for renderer, matcher, rig in zip(runtime.renderers, runtime.matchers, runtime.robot.stereo_rigs):
+        for renderer, imaging, matcher, rig in zip(runtime.renderers, runtime.imaging, runtime.matchers, runtime.robot.stereo_rigs):
             t = time.perf_counter()
             stereo = renderer.render(self.world.data, with_depth=with_depth)
-            self.timers.add("rendering", t)
+            t = self.timers.add("rendering", t)
+            if imaging is not None:
+                stereo.left, stereo.right = imaging.expose(stereo.left, stereo.right, self._camera_rate(rig.left_camera))
+                self.timers.add("imaging", t)
             if self.recorder is not None and frame % self.scenario.output.recording_image_every == 0:
                 t = time.perf_counter()
                 self.recorder.log_frame(runtime.robot.name, rig, now, stereo)
@@ -482,7 +507,8 @@ class Run:
             onboard = runtime.onboard
             for_vo = onboard is not None and rig is onboard.vo_rig
             if onboard is not None:
-                T_body_cam = body_camera_transform(self.world.model, self.world.data, runtime.robot, rig.left_camera)
+                T_true = body_camera_transform(self.world.model, self.world.data, runtime.robot, rig.left_camera)
+                T_body_cam = believed_body_camera(T_true, rig, runtime.calibration_error)
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
                     if runtime.image_cells is not None:
@@ -498,6 +524,13 @@ class Run:
             )
             if job is None and for_vo:
                 runtime.onboard.stereo_dropped(frame)
+
+    def _camera_rate(self, camera: str) -> np.ndarray:
+        """True angular velocity of a camera in its own OpenCV axes (rad/s), for motion blur."""
+        out = np.zeros(6)
+        cam = self.world.model.camera(camera).id
+        mujoco.mj_objectVelocity(self.world.model, self.world.data, mujoco.mjtObj.mjOBJ_CAMERA, cam, out, 1)
+        return MUJOCO_TO_OPENCV @ out[:3]
 
     def _camera_pose(self, camera: str) -> np.ndarray:
         """True T_world_cam of a camera (OpenCV axes)."""

@@ -66,7 +66,7 @@ def build_world(scenario: Scenario, terrain: Terrain, robots: Sequence[Robot]) -
     root.option.gravity = list(GRAVITY)
     root.option.integrator = "implicitfast"
     root.option.cone = "elliptic"
-    add_terrain(root, terrain)
+    add_terrain(root, terrain, scenario.realism.light)
     for robot in robots:
         robot.attach(root, terrain)
     configure_visual(root, terrain, robots)

@@ -38,13 +38,15 @@ no ADC field).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 from scipy.special import ndtri
 
-__all__ = ["GUPPY_PRO_F125B", "IDEAL_IMAGING", "CameraImaging", "ImagingParams"]
+from sim.scenario import CameraRealism
+
+__all__ = ["GUPPY_PRO_F125B", "IDEAL_IMAGING", "CameraImaging", "ImagingParams", "imaging_params"]
 
 
 @dataclass(frozen=True)
@@ -336,3 +338,19 @@ class CameraImaging:
         if p.auto_exposure:
             self._exposure_s, self._gain = _auto_exposure(float(out[0].mean()), self._exposure_s, self._gain, p)
         return out[0], out[1]
+
+
+def imaging_params(cfg: CameraRealism, rng: np.random.Generator) -> ImagingParams | None:
+    """The scenario's ``realism.camera`` applied to :data:`GUPPY_PRO_F125B`, the right
+    camera's response error drawn from ``rng``; None when every imperfection is off
+    (the rendered images are used as they are)."""
+    if not (cfg.noise or cfg.auto_exposure or cfg.vignetting or cfg.motion_blur or cfg.right_gain_error_std):
+        return None
+    return replace(
+        GUPPY_PRO_F125B,
+        noise=cfg.noise,
+        auto_exposure=cfg.auto_exposure,
+        vignetting=cfg.vignetting,
+        motion_blur=cfg.motion_blur,
+        right_gain_error=float(rng.standard_normal()) * cfg.right_gain_error_std,
+    )

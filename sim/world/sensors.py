@@ -12,35 +12,46 @@
   several cm/s per point turn, which the filter cannot model as white noise.
 - :class:`StereoRenderer` renders a rectified pinhole pair (:class:`~sim.world.camera_rig.StereoRig`)
   offscreen, grey or RGB, plus the left camera's ground-truth z-depth, fast on CPU
-  (llvmpipe): no shadows, no reflections, no MSAA, and depth read from the same pass as
-  the left image (no extra depth-only render).
+  (llvmpipe): no reflections, no MSAA, shadows only where the world's sun casts them,
+  and depth read from the same pass as the left image (no extra depth-only render).
+  With a calibration error (:mod:`sim.world.calibration_errors`) the model's cameras
+  are the true ones, which differ from the nominal rig by that error.
+- :class:`ImuErrors` are the IMU's deterministic errors beyond noise and biases, drawn
+  once per run (scenario ``realism.imu``): scale factors, axis misalignment and the gyros'
+  sensitivity to specific force.
 - :class:`WheelOdometryModel` fits the planar body velocity to the wheels' contact-point
   velocities by least squares (steered and skid-steered wheels alike); it sees the slip
-  the physics produces, because it uses wheel speeds, not ground speed.
+  the physics produces, because it uses wheel speeds, not ground speed. :class:`WheelErrors`
+  (scenario ``realism.wheels``) add what the rigid contact of the physics does not
+  produce: slip in loose regolith that grows uphill, and a wheel radius the odometry
+  gets wrong.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar, Protocol, Self
 
 import cv2
 import mujoco
 import numpy as np
 
-from sim.scenario import CameraConfig, WheelOdometryConfig
+from sim.scenario import CameraConfig, ImuRealism, WheelOdometryConfig, WheelRealism
+from sim.world.calibration_errors import RigError
 from sim.world.camera_rig import StereoRig
 
 __all__ = [
     "IMU_PRESETS",
+    "ImuErrors",
     "ImuModel",
     "ImuSpec",
     "InertialAverager",
     "SensorError",
     "StereoFrame",
     "StereoRenderer",
+    "WheelErrors",
     "WheelLike",
     "WheelOdometryModel",
     "body_velocity_from_wheels",
@@ -133,12 +144,39 @@ ADIS16407 = ImuSpec(
 IMU_PRESETS: dict[str, ImuSpec] = {s.name: s for s in (XSENS_MTI10, ADIS16407)}
 
 
+@dataclass(frozen=True)
+class ImuErrors:
+    """An IMU's deterministic errors (1 + scale on the diagonal, misalignment off it):
+    ``accel`` and ``gyro`` map true to sensed axes, ``g_sensitivity`` (rad/s per m/s^2)
+    adds specific force to the gyros. Typical of MEMS parts after factory calibration
+    (the values of ``realism`` profiles and their sources: sim/scenario.py)."""
+
+    accel: np.ndarray = field(default_factory=lambda: np.eye(3))
+    gyro: np.ndarray = field(default_factory=lambda: np.eye(3))
+    g_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+
+    @classmethod
+    def draw(cls, cfg: ImuRealism, rng: np.random.Generator) -> ImuErrors:
+        """Each scale error, misalignment angle and g-sensitivity normal with ``cfg``'s std."""
+        off = ~np.eye(3, dtype=bool)
+
+        def axes() -> np.ndarray:
+            M = np.eye(3) + np.diag(rng.standard_normal(3) * cfg.scale_factor)
+            M[off] = rng.standard_normal(6) * cfg.misalignment_deg * DEG
+            return M
+
+        accel, gyro = axes(), axes()
+        return cls(accel, gyro, rng.standard_normal((3, 3)) * cfg.g_sensitivity_dps_per_g * DEG / G0)
+
+
 class ImuModel:
     """Accelerometer and gyro measurements from true body-frame specific force and
     angular rate, sampled at ``rate_hz``:
 
-        a_meas = f_true + b_a + n_a,   w_meas = w_true + b_g + n_g,
-        n ~ N(0, (density * sqrt(rate_hz))^2),   b_{k+1} = b_k + N(0, random_walk^2 / rate_hz).
+        a_meas = M_a f_true + b_a + n_a,   w_meas = M_g w_true + G f_true + b_g + n_g,
+        n ~ N(0, (density * sqrt(rate_hz))^2),   b_{k+1} = b_k + N(0, random_walk^2 / rate_hz),
+
+    with ``M_a``, ``M_g``, ``G`` from :class:`ImuErrors` (identity and zero by default).
 
     Each :meth:`measure` call is one sample: the biases advance by ``dt = 1/rate_hz``
     first, then the measurement uses them; :attr:`accel_bias` / :attr:`gyro_bias` are
@@ -146,10 +184,13 @@ class ImuModel:
     are drawn from the spec's turn-on spread (times ``initial_bias_scale``).
     """
 
-    def __init__(self, spec: ImuSpec, rate_hz: float, rng: np.random.Generator, initial_bias_scale: float = 1.0):
+    def __init__(
+        self, spec: ImuSpec, rate_hz: float, rng: np.random.Generator, initial_bias_scale: float = 1.0, errors: ImuErrors | None = None
+    ):
         if rate_hz <= 0:
             raise SensorError(f"IMU rate_hz must be > 0, got {rate_hz}")
         self.spec = spec
+        self.errors = errors
         self.rate_hz = float(rate_hz)
         self.dt = 1.0 / self.rate_hz
         self.rng = rng
@@ -192,8 +233,12 @@ class ImuModel:
         """One sample: ``(accel m/s^2, gyro rad/s)`` in the body (IMU) frame."""
         n = self.rng.standard_normal(12) * self._std
         self._bias += n[6:]
-        accel = np.asarray(specific_force_body, dtype=float) + self._bias[:3] + n[:3]
-        gyro = np.asarray(angular_velocity_body, dtype=float) + self._bias[3:] + n[3:6]
+        f = np.asarray(specific_force_body, dtype=float)
+        w = np.asarray(angular_velocity_body, dtype=float)
+        if self.errors is not None:
+            f, w = self.errors.accel @ f, self.errors.gyro @ w + self.errors.g_sensitivity @ f
+        accel = f + self._bias[:3] + n[:3]
+        gyro = w + self._bias[3:] + n[3:6]
         self.samples += 1
         return accel, gyro
 
@@ -310,20 +355,21 @@ class StereoRenderer:
     principal point at the image centre, which is MuJoCo's camera model); the model's
     cameras must match it (``fovy == rig.vfov_deg``, right camera at ``+baseline`` along
     the left camera's x with the same orientation: checked, :class:`SensorError`
-    otherwise). ``camera`` gives the colour mode and the depth range: before each
+    otherwise), or, given the rig's calibration ``error``, match it changed by that
+    error. ``camera`` gives the colour mode and the depth range: before each
     render ``model.vis.map.znear * model.stat.extent`` is set to ``camera.znear_m`` (the
     near plane is the camera's own even when one model serves cameras with different
     settings), and the far plane to ``SKY_FAR_FACTOR * camera.zfar_m``; ground-truth
     depth beyond ``camera.zfar_m`` is reported as ``inf`` (the skybox has depth in
     MuJoCo, at 0.5..1 x the far plane, and must not pass for terrain).
 
-    Fast on CPU: shadows and reflections off, MSAA off (``vis.quality.offsamples = 0``,
+    Fast on CPU: reflections off, shadows only if a light casts them, MSAA off (``vis.quality.offsamples = 0``,
     set before the render context is made), one GL context per (model, width, height)
     shared by all renderers, and the ground-truth depth is read from the depth buffer
     of the left image's own pass. Call :meth:`close` when done (EGL teardown).
     """
 
-    def __init__(self, model: mujoco.MjModel, rig: StereoRig, camera: CameraConfig):
+    def __init__(self, model: mujoco.MjModel, rig: StereoRig, camera: CameraConfig, error: RigError | None = None):
         if (rig.width, rig.height) != (camera.width, camera.height):
             raise SensorError(
                 f"stereo rig {rig.name!r} is {rig.width}x{rig.height} but its camera config asks for "
@@ -332,11 +378,12 @@ class StereoRenderer:
         self.model = model
         self.rig = rig
         self.camera = camera
+        self.error = error or RigError()
         self._cam_ids = tuple(self._camera_id(name) for name in (rig.left_camera, rig.right_camera))
         for name, cid in zip((rig.left_camera, rig.right_camera), self._cam_ids):
-            fovy = float(model.cam_fovy[cid])
-            if abs(fovy - rig.vfov_deg) > 1e-3:
-                raise SensorError(f"camera {name!r} has fovy {fovy:.6f} deg, rig {rig.name!r} needs {rig.vfov_deg:.6f} deg")
+            fovy, expected = float(model.cam_fovy[cid]), self.error.true_vfov_deg(rig)
+            if abs(fovy - expected) > 1e-3:
+                raise SensorError(f"camera {name!r} has fovy {fovy:.6f} deg, rig {rig.name!r} needs {expected:.6f} deg")
             if hasattr(model, "cam_sensorsize") and np.any(model.cam_sensorsize[cid] > 0):
                 raise SensorError(f"camera {name!r} uses sensorsize/focal intrinsics; expected a plain fovy pinhole")
         self._mjv_cams = []
@@ -346,6 +393,7 @@ class StereoRenderer:
             cam.fixedcamid = cid
             self._mjv_cams.append(cam)
         self._geometry_checked = False
+        self._shadows = int(bool(np.any(model.light_castshadow)) and model.vis.quality.shadowsize > 0)
         self._target: _RenderTarget | None = _RenderTarget.acquire(model, rig.width, rig.height)
 
     def _camera_id(self, name: str) -> int:
@@ -372,13 +420,15 @@ class StereoRenderer:
         if not np.any(R_l):  # kinematics not computed yet: check on a later frame
             return
         rel = R_l.T @ (data.cam_xpos[right] - data.cam_xpos[left])  # MuJoCo camera frame: x right
-        expected = np.array([self.rig.baseline_m, 0.0, 0.0])
-        angle = np.linalg.norm(cv2.Rodrigues(R_l.T @ R_r)[0])
-        if np.linalg.norm(rel - expected) > 1e-3 or angle > 1e-3:
+        baseline = self.rig.baseline_m * self.error.baseline_scale
+        expected = np.array([baseline, 0.0, 0.0])
+        flip = np.diag([1.0, -1.0, -1.0])  # the error's rotation is in OpenCV camera axes
+        angle = np.linalg.norm(cv2.Rodrigues(R_l.T @ R_r @ (flip @ self.error.R_right @ flip).T)[0])
+        if np.linalg.norm(rel - expected) > 1e-3 or angle > 1e-4:
             raise SensorError(
-                f"stereo rig {self.rig.name!r}: right camera must sit at +baseline ({self.rig.baseline_m} m) along "
-                f"the left camera's x with the same orientation; found offset {rel.round(4).tolist()} m "
-                f"and relative rotation {angle:.4f} rad"
+                f"stereo rig {self.rig.name!r}: right camera must sit at +baseline ({baseline:.5f} m) along "
+                f"the left camera's x, turned by its calibration error; found offset {rel.round(4).tolist()} m "
+                f"and a rotation {angle:.5f} rad off"
             )
         self._geometry_checked = True
 
@@ -395,7 +445,7 @@ class StereoRenderer:
         t.make_current()
         scene = t.scene
         mujoco.mjv_updateScene(m, data, t.option, None, self._mjv_cams[0], mujoco.mjtCatBit.mjCAT_ALL, scene)
-        scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self._shadows
         scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         mujoco.mjr_render(t.rect, scene, t.context)
         mujoco.mjr_readPixels(t.rgb, t.zbuf if with_depth else None, t.rect, t.context)
@@ -484,22 +534,66 @@ def body_velocity_from_wheels(wheels: Sequence[WheelLike]) -> tuple[np.ndarray, 
     return sol, residual
 
 
-class WheelOdometryModel:
-    """Wheel odometry: :func:`body_velocity_from_wheels` plus white noise
-    (``cfg.speed_noise_std_mps`` on v_x and v_y, ``cfg.yaw_rate_noise_std_rps`` on the
-    yaw rate). :meth:`measure` returns ``np.array([v_x, v_y, yaw_rate])`` in the body
-    frame; :attr:`last_true` (noise-free fit) and :attr:`last_residual_mps` (slip
-    indicator) are kept for evaluation."""
+#: Correlation time of the soil's slip variation (s): patches of looser and firmer
+#: regolith passing under a rover at 0.3 m/s over about 1.5 m (chosen).
+SLIP_CORRELATION_S = 5.0
+SLIP_RANGE = (-0.5, 0.9)  # skid downhill .. nearly spinning in place
 
-    def __init__(self, cfg: WheelOdometryConfig, rng: np.random.Generator):
+
+@dataclass(frozen=True)
+class WheelErrors:
+    """Wheel odometry errors the physics does not produce. The MuJoCo contact is firm
+    ground; on loose regolith the wheels turn more than the ground passes under them,
+    with a slip ratio ``s = 1 - ground travel / wheel travel`` that grows uphill (Lindemann and Voorhees 2005, MER slip tests):
+
+        s = slip + slip_per_10deg * slope_deg / 10 + e,   e: Ornstein-Uhlenbeck, std ``slip_std``,
+
+    with ``slope_deg`` the gradient along the direction of travel (negative downhill).
+    The odometry also assumes a radius ``radius_scale`` times the true one. Together the
+    measured velocities are the wheels' fit times ``radius_scale / (1 - s)``."""
+
+    radius_scale: float = 1.0
+    slip: float = 0.0
+    slip_per_10deg: float = 0.0
+    slip_std: float = 0.0
+
+    @classmethod
+    def draw(cls, cfg: WheelRealism, rng: np.random.Generator) -> WheelErrors:
+        """The radius error drawn with ``cfg.radius_error``'s std; the slip model as given."""
+        return cls(1.0 + float(rng.standard_normal()) * cfg.radius_error, cfg.slip, cfg.slip_per_10deg, cfg.slip_std)
+
+
+class WheelOdometryModel:
+    """Wheel odometry: :func:`body_velocity_from_wheels`, scaled by the :class:`WheelErrors`,
+    plus white noise (``cfg.speed_noise_std_mps`` on v_x and v_y,
+    ``cfg.yaw_rate_noise_std_rps`` on the yaw rate). :meth:`measure` returns
+    ``np.array([v_x, v_y, yaw_rate])`` in the body frame; :attr:`last_true` (noise-free
+    fit), :attr:`last_residual_mps` (slip indicator of the fit) and :attr:`last_slip`
+    (the slip ratio applied) are kept for evaluation."""
+
+    def __init__(self, cfg: WheelOdometryConfig, rng: np.random.Generator, errors: WheelErrors | None = None):
         self.cfg = cfg
         self.rng = rng
+        self.errors = errors or WheelErrors()
         self._std = np.array([cfg.speed_noise_std_mps, cfg.speed_noise_std_mps, cfg.yaw_rate_noise_std_rps])
+        self._dt = 1.0 / cfg.rate_hz
+        self._soil = 0.0  # the slip's soil variation e
         self.last_true = np.zeros(3)
         self.last_residual_mps = 0.0
+        self.last_slip = 0.0
 
-    def measure(self, wheels: Sequence[WheelLike]) -> np.ndarray:
+    def measure(self, wheels: Sequence[WheelLike], forward_incline_sin: float = 0.0) -> np.ndarray:
+        """One sample; ``forward_incline_sin``: sine of the body x axis's angle above the
+        horizon (positive nose up), for the slope-dependent slip."""
         velocity, residual = body_velocity_from_wheels(wheels)
         self.last_true = velocity
         self.last_residual_mps = residual
-        return velocity + self.rng.standard_normal(3) * self._std
+        n = self.rng.standard_normal(3) * self._std
+        err = self.errors
+        if err.slip_std > 0:  # exact discretisation of the Ornstein-Uhlenbeck process
+            a = math.exp(-self._dt / SLIP_CORRELATION_S)
+            self._soil = a * self._soil + math.sqrt(1 - a * a) * err.slip_std * float(self.rng.standard_normal())
+        uphill_deg = math.degrees(math.asin(max(-1.0, min(1.0, forward_incline_sin)))) * (1.0 if velocity[0] >= 0 else -1.0)
+        slip = err.slip + err.slip_per_10deg * uphill_deg / 10.0 + self._soil if err.slip or err.slip_per_10deg or err.slip_std else 0.0
+        self.last_slip = min(max(slip, SLIP_RANGE[0]), SLIP_RANGE[1])
+        return velocity * (err.radius_scale / (1.0 - self.last_slip)) + n
