@@ -63,7 +63,9 @@ def test_inserting_a_robot_changes_no_other_robots_randomness():
 
 @pytest.fixture(scope="module")
 def quickstart():
-    return run("scenarios/quickstart.yaml", ["duration_s=12", "output.recording=false", "output.topdown_png=false"])
+    # the ideal world: these bounds are the stack's without sensor and calibration errors
+    # (the realistic world's figures: docs/realism.md)
+    return run("scenarios/quickstart.yaml", ["duration_s=12", "output.recording=false", "output.topdown_png=false", "realism.profile=ideal"])
 
 
 def test_sgbm_depth_on_rendered_terrain_under_5_percent(quickstart):
