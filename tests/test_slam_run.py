@@ -85,7 +85,9 @@ def test_each_robot_knows_where_the_other_is(runs):
         assert t - t_est < 3.5  # periodic estimates every second, 2 s latency, lane delays
         est = np.linalg.solve(own[t], B)  # the peer at t_est, seen from here at t: both rovers stand still
         true = np.linalg.solve(_truth(run, name, t), _truth(run, peer, t_est))
-        assert np.linalg.norm(est[:3, 3] - true[:3, 3]) < 0.1
+        # 3 m apart in the realistic world: the detections' rotation errors (about 1-3 deg,
+        # docs/realism.md) tilt the peer's position by up to ~0.15 m; a wrong frame is metres off
+        assert np.linalg.norm(est[:3, 3] - true[:3, 3]) < 0.2
 
 
 def test_same_scenario_same_slam(runs):

@@ -29,6 +29,8 @@ VARIANTS: dict[str, list[str]] = {
     "default": [],
     "no_depth_truth": ["robots.*.camera.depth_ground_truth_every=0"],
     "half_rate": ["robots.*.camera.rate_hz=2.5"],
+    "ideal": ["realism.profile=ideal"],  # what the realistic world's image formation costs (docs/realism.md)
+    "shadows": ["realism.light.shadows=true"],  # the sun's shadow map (docs/realism.md, "Shadows")
 }
 
 
