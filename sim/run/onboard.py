@@ -29,7 +29,7 @@ from sim.run.lanes import Lane, Priority
 from sim.scenario import MappingConfig, Scenario, SlamConfig, slam_kwargs
 from sim.seeding import RandomStreams
 from sim.tools.marker_lut import load_tables
-from sim.world.camera_rig import StereoRig
+from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
 from sim.world.sensors import ImuSpec
 from slam.agent import Agent, AgentParams, Outgoing, TeamMarker
 from slam.filter import FilterParams
@@ -44,8 +44,6 @@ from slam.stereo import StereoCalibration, depth_error
 from slam.submap import SubmapParams
 from slam.vo import StereoVO, VoResult
 
-# MuJoCo cameras look along -z with y up; OpenCV cameras along +z with y down.
-MUJOCO_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 #: Tilt error of the resting initialisation beyond the accelerometer bias: the mean of
 #: 0.5 s of samples has a noise of a few thousandths of a degree; the rest is margin for
 #: a robot that is not perfectly still (motors idling, a settling suspension).

@@ -32,12 +32,12 @@ from sim.evaluation.image_classification import ImageCells
 from sim.robots import make_robot
 from sim.robots.base import Robot
 from sim.run.lanes import ComputeModel, Device, Lane, Priority
-from sim.run.onboard import MUJOCO_TO_OPENCV, OnboardStack, body_camera_transform, calibration
+from sim.run.onboard import OnboardStack, body_camera_transform, calibration
 from sim.run.recording import Recorder
 from sim.scenario import Scenario
 from sim.seeding import RandomStreams
-from sim.world.calibration_errors import CalibrationError, believed_body_camera, draw_calibration_errors, perturb_cameras
-from sim.world.camera_rig import StereoRig
+from sim.world.calibration_errors import believed_body_camera, draw_calibration_errors, perturb_cameras
+from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
 from sim.world.compose import World, build_world
 from sim.world.imaging import CameraImaging, imaging_params
 from sim.world.sensors import IMU_PRESETS, ImuErrors, ImuModel, InertialAverager, StereoRenderer, WheelErrors, WheelOdometryModel
@@ -149,7 +149,6 @@ class RobotRuntime:
     camera_every: int
     renderers: list[StereoRenderer]
     imaging: list[CameraImaging | None]  # per rig: image formation, None for ideal images
-    calibration_error: CalibrationError
     matchers: list[StereoMatcher]
     odometry: WheelOdometryModel | None
     odom_every: int
@@ -307,7 +306,6 @@ class Run:
             camera_every=self._every(cfg.camera.rate_hz, f"robots.{robot.name}.camera"),
             renderers=renderers,
             imaging=imaging,
-            calibration_error=calib,
             matchers=matchers,
             odometry=odometry,
             odom_every=self._every(cfg.wheel_odometry.rate_hz, f"robots.{robot.name}.wheel_odometry"),
@@ -498,7 +496,8 @@ class Run:
             stereo = renderer.render(self.world.data, with_depth=with_depth)
             t = self.timers.add("rendering", t)
             if imaging is not None:
-                stereo.left, stereo.right = imaging.expose(stereo.left, stereo.right, self._camera_rate(rig.left_camera))
+                rate = self._camera_rate(rig.left_camera) if imaging.params.motion_blur else None
+                stereo.left, stereo.right = imaging.expose(stereo.left, stereo.right, rate)
                 self.timers.add("imaging", t)
             if self.recorder is not None and frame % self.scenario.output.recording_image_every == 0:
                 t = time.perf_counter()
@@ -508,7 +507,7 @@ class Run:
             for_vo = onboard is not None and rig is onboard.vo_rig
             if onboard is not None:
                 T_true = body_camera_transform(self.world.model, self.world.data, runtime.robot, rig.left_camera)
-                T_body_cam = believed_body_camera(T_true, rig, runtime.calibration_error)
+                T_body_cam = believed_body_camera(T_true, rig, self.calibration_errors[runtime.robot.name])
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
                     if runtime.image_cells is not None:

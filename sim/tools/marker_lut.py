@@ -26,6 +26,7 @@ from dm_control import mjcf
 
 from sim.robots import make_robot
 from sim.scenario import Scenario
+from sim.world.camera_rig import MUJOCO_TO_OPENCV
 from sim.world.markers import MarkerSpec, add_marker
 from slam.lie import se3, se3_inv
 from slam.marker_uncertainty import DEFAULT_DP_PX, MarkerErrorTable, corner_perturbations, pose_error, postprocess, table_name
@@ -99,7 +100,7 @@ class _TagScene:
         grey = cv2.cvtColor(self.renderer.render(), cv2.COLOR_RGB2GRAY)
         if blur_sigma_px > 0:
             grey = cv2.GaussianBlur(grey, (0, 0), blur_sigma_px)
-        T_world_cam = se3(self.data.cam_xmat[self.cam].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0]), self.data.cam_xpos[self.cam])
+        T_world_cam = se3(self.data.cam_xmat[self.cam].reshape(3, 3) @ MUJOCO_TO_OPENCV, self.data.cam_xpos[self.cam])
         return grey, se3_inv(T_world_cam) @ se3(R, [distance_m, 0.0, CAMERA_HEIGHT_M])
 
     def close(self) -> None:

@@ -21,7 +21,7 @@ import numpy as np
 from dm_control import mjcf
 
 from sim.scenario import CameraConfig, TerrainConfig
-from sim.world.camera_rig import StereoRig
+from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
 from sim.world.sensors import StereoRenderer
 from sim.world.terrain import add_terrain, generate_terrain
 from slam.lie import rot_z, se3
@@ -92,7 +92,7 @@ class RockyScene:
         mujoco.mj_forward(self.model, self.data)
         frame = self.renderer.render(self.data)
         depth = self.stereo.depth(frame.left, frame.right)
-        T_world_cam = se3(self.data.cam_xmat[self._left].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0]), self.data.cam_xpos[self._left])
+        T_world_cam = se3(self.data.cam_xmat[self._left].reshape(3, 3) @ MUJOCO_TO_OPENCV, self.data.cam_xpos[self._left])
         return frame.left, depth, T_world_cam
 
     def submap(self, robot: str, index: int, start_xy, end_xy, images: int = 24, yaw_offset: float = 0.0) -> tuple[Submap, np.ndarray]:

@@ -38,14 +38,12 @@ import numpy as np
 
 from sim.robots.base import Robot
 from sim.scenario import CalibrationRealism
-from sim.world.camera_rig import StereoRig
+from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
 from slam.lie import se3, so3_exp
 
 __all__ = ["CalibrationError", "RigError", "believed_body_camera", "draw_calibration_errors", "perturb_cameras"]
 
 DEG = math.pi / 180.0
-# MuJoCo cameras look along -z with y up; OpenCV cameras along +z with y down (sim/run/onboard.py).
-_MUJOCO_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 
 
 @dataclass(frozen=True)
@@ -100,7 +98,7 @@ def perturb_cameras(model: mujoco.MjModel, robot: Robot, errors: CalibrationErro
         model.cam_pos[right] = model.cam_pos[left] + (model.cam_pos[right] - model.cam_pos[left]) * err.baseline_scale
         R = np.zeros(9)
         mujoco.mju_quat2Mat(R, model.cam_quat[right])
-        R_mj = _MUJOCO_TO_OPENCV @ err.R_right @ _MUJOCO_TO_OPENCV  # the same rotation in MuJoCo camera axes
+        R_mj = MUJOCO_TO_OPENCV @ err.R_right @ MUJOCO_TO_OPENCV  # the same rotation in MuJoCo camera axes
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, (R.reshape(3, 3) @ R_mj).ravel())
         model.cam_quat[right] = quat

@@ -8,6 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: MuJoCo cameras look along -z with y up; OpenCV cameras along +z with y down: a MuJoCo
+#: camera's rotation times this is the same camera in OpenCV axes (its own inverse).
+MUJOCO_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
+
 
 @dataclass(frozen=True)
 class StereoRig:

@@ -40,7 +40,7 @@ import numpy as np
 
 from sim.scenario import CameraConfig, ImuRealism, WheelOdometryConfig, WheelRealism
 from sim.world.calibration_errors import RigError
-from sim.world.camera_rig import StereoRig
+from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
 
 __all__ = [
     "IMU_PRESETS",
@@ -422,8 +422,8 @@ class StereoRenderer:
         rel = R_l.T @ (data.cam_xpos[right] - data.cam_xpos[left])  # MuJoCo camera frame: x right
         baseline = self.rig.baseline_m * self.error.baseline_scale
         expected = np.array([baseline, 0.0, 0.0])
-        flip = np.diag([1.0, -1.0, -1.0])  # the error's rotation is in OpenCV camera axes
-        angle = np.linalg.norm(cv2.Rodrigues(R_l.T @ R_r @ (flip @ self.error.R_right @ flip).T)[0])
+        R_err = MUJOCO_TO_OPENCV @ self.error.R_right @ MUJOCO_TO_OPENCV  # the error is in OpenCV camera axes
+        angle = np.linalg.norm(cv2.Rodrigues(R_l.T @ R_r @ R_err.T)[0])
         if np.linalg.norm(rel - expected) > 1e-3 or angle > 1e-4:
             raise SensorError(
                 f"stereo rig {self.rig.name!r}: right camera must sit at +baseline ({baseline:.5f} m) along "
@@ -594,6 +594,6 @@ class WheelOdometryModel:
             a = math.exp(-self._dt / SLIP_CORRELATION_S)
             self._soil = a * self._soil + math.sqrt(1 - a * a) * err.slip_std * float(self.rng.standard_normal())
         uphill_deg = math.degrees(math.asin(max(-1.0, min(1.0, forward_incline_sin)))) * (1.0 if velocity[0] >= 0 else -1.0)
-        slip = err.slip + err.slip_per_10deg * uphill_deg / 10.0 + self._soil if err.slip or err.slip_per_10deg or err.slip_std else 0.0
+        slip = err.slip + err.slip_per_10deg * uphill_deg / 10.0 + self._soil
         self.last_slip = min(max(slip, SLIP_RANGE[0]), SLIP_RANGE[1])
         return velocity * (err.radius_scale / (1.0 - self.last_slip)) + n
