@@ -33,6 +33,7 @@ from pydantic import (
 from comms import CommsConfig, CommsError
 from sim.robots import PRESETS
 from slam.agent import AgentParams
+from slam.filter import FilterParams
 from slam.graph import GraphParams
 from slam.health import HealthParams
 from slam.local_estimator import LocalEstimator
@@ -40,6 +41,7 @@ from slam.matcher import MatcherParams
 from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.submap import SubmapParams
+from slam.vo import VoParams
 
 NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
 
@@ -544,6 +546,32 @@ class SlamConfig(StrictModel):
     )
     wheel_vz_std_mps: PositiveFloat = slam_field(
         SlamParam(LocalEstimator.on_wheel_odometry, "vz_std"), description="std of the rover's v_z = 0 pseudo-measurement"
+    )
+    wheel_slip_std: NonNegFloat = slam_field(
+        SlamParam(LocalEstimator.on_wheel_odometry, "slip_std"),
+        description="relative wheel-speed error from slip and rolling radius the filter assumes (0: none)",
+    )
+    wheel_slip_correlation_s: PositiveFloat = slam_field(
+        SlamParam(LocalEstimator.on_wheel_odometry, "slip_correlation_s"), description="correlation time of that error"
+    )
+    gyro_scale_std: NonNegFloat = slam_field(
+        SlamParam(FilterParams, "gyro_scale_std"),
+        description="relative gyro scale and misalignment error the filter allows for in turns (0: none)",
+    )
+    gyro_scale_correlation_s: PositiveFloat = slam_field(
+        SlamParam(FilterParams, "gyro_scale_correlation_s"), description="correlation time of that error"
+    )
+    vo_disparity_bias_px: NonNegFloat = slam_field(
+        SlamParam(VoParams, "disparity_bias_px"),
+        description="std of a disparity offset common to all VO points (rectification error) in the VO's covariance",
+    )
+    camera_rotation_std_deg: NonNegFloat = slam_field(
+        SlamParam(VoParams, "extrinsic_rotation_std_rad", degrees=True),
+        description="std per axis of the camera-IMU calibration's rotation, in the VO deltas' covariance",
+    )
+    camera_translation_std_m: NonNegFloat = slam_field(
+        SlamParam(VoParams, "extrinsic_translation_std_m"),
+        description="std per axis of the camera-IMU calibration's translation, in the VO deltas' covariance",
     )
     frame_switch_distance_m: PositiveFloat = Field(
         5.0, description="without mapping only: frame switch after this distance driven in the current frame"

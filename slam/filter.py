@@ -117,6 +117,12 @@ class FilterParams:
     visual-odometry deltas (6 dof); ``velocity_gate_probability`` an optional one on body
     velocities (``None``: none). ``replay_horizon_s`` is how far back delayed deltas are
     applied exactly (0 disables the replay: stochastic cloning only).
+    ``gyro_scale_std`` is the gyros' residual scale and axis-misalignment error (relative,
+    per axis; MEMS parts after factory calibration: 0.1 %, 0.05 deg), which the state does
+    not estimate: an error ``k w`` of the rate, taken as attitude process noise of
+    variance ``(k |w|)^2 2 tau dt`` per axis and step, the low-frequency power of a
+    first-order Gauss-Markov error with correlation time ``tau =
+    gyro_scale_correlation_s`` (Gelb 1974, ch. 3), for turns up to ``2 tau`` long.
     """
 
     gyro_noise_density: float
@@ -134,6 +140,8 @@ class FilterParams:
     gate_probability: float = 0.999
     velocity_gate_probability: float | None = None
     replay_horizon_s: float = 2.0
+    gyro_scale_std: float = 0.001
+    gyro_scale_correlation_s: float = 5.0
 
     def __post_init__(self):
         for name in ("gyro_noise_density", "accel_noise_density", "gyro_bias_random_walk", "accel_bias_random_walk"):
@@ -147,6 +155,8 @@ class FilterParams:
             "initial_accel_bias_std",
             "initial_gyro_bias_std",
             "replay_horizon_s",
+            "gyro_scale_std",
+            "gyro_scale_correlation_s",
         ):
             if not getattr(self, name) >= 0.0:
                 raise FilterException(f"FilterParams.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -521,6 +531,10 @@ class LocalReferenceFilter:
         Phi[_TH, _BW] = -W[:, 3:6]
         P = self._Pbuf
         P[:CORE, :CORE] = Phi @ P[:CORE, :CORE] @ Phi.T + self._process_noise(dt)
+        if self.params.gyro_scale_std > 0.0:  # unmodelled scale and misalignment: grows with the rate
+            rate = 0.5 * (w0 + w1) - self._bw
+            q = self.params.gyro_scale_std**2 * float(rate @ rate) * 2.0 * self.params.gyro_scale_correlation_s * dt
+            P[_TH, _TH] += q * np.eye(3)
         d = self._dim
         if d > CORE:
             X = Phi @ P[:CORE, CORE:d]

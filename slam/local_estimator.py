@@ -140,6 +140,7 @@ class LocalEstimator:
         self._commanded_motion: bool | None = None
         self._wheel_sum = np.zeros(3)  # wheel odometry (v_x, v_y, yaw rate) since the last window
         self._wheel_n = 0
+        self._wheel_t: float | None = None  # time of the latest wheel sample
         self._capture_t: dict[int, float] = {}
         self._vo_prev: tuple[int, float, int, np.ndarray, np.ndarray] | None = None  # (frame, t, keyframe, T_kf_frame, cov) body
         self._vo_moving_t: float | None = None  # capture time of the latest VO step that showed motion
@@ -149,6 +150,8 @@ class LocalEstimator:
         self.health_history: list[tuple[float, str, str]] = []
         self._last_zupt_t = -math.inf
         self._vo_trouble: tuple[str, str] | None = None  # the latest VO outcome since the last applied delta
+        self._extrinsic_cov = None if vo is None else np.diag(
+            [vo.params.extrinsic_rotation_std_rad**2] * 3 + [vo.params.extrinsic_translation_std_m**2] * 3)
 
     @property
     def initialised(self) -> bool:
@@ -194,16 +197,41 @@ class LocalEstimator:
         p, window = self.params, self.rest_window
         return math.hypot(p.gyro_noise_density / math.sqrt(window), p.gyro_bias_random_walk * math.sqrt(window))
 
-    def on_wheel_odometry(self, v_body: np.ndarray, speed_std: float, yaw_rate_std: float, vz_std: float = 0.05) -> None:
-        """Wheel odometry ``(v_x, v_y, yaw_rate)`` as a body-velocity update; ``v_z = 0``
-        (the wheels keep the body on the ground) with ``vz_std``."""
+    def on_wheel_odometry(
+        self,
+        t: float,
+        v_body: np.ndarray,
+        speed_std: float,
+        yaw_rate_std: float,
+        vz_std: float = 0.05,
+        slip_std: float = 0.03,
+        slip_correlation_s: float = 5.0,
+    ) -> None:
+        """Wheel odometry ``(v_x, v_y, yaw_rate)`` sampled at ``t`` as a body-velocity
+        update; ``v_z = 0`` (the wheels keep the body on the ground) with ``vz_std``.
+
+        Besides the white ``speed_std`` and ``yaw_rate_std``, the wheels err by slip and
+        an unknown rolling radius (thesis 4.1.1: wheel odometry "taking into account
+        possible slip", Bussmann et al. 2018): a relative error of ``slip_std`` that
+        changes with the soil over ``slip_correlation_s``. A first-order Gauss-Markov
+        error of std ``σ`` and correlation time ``τ`` has the low-frequency power
+        ``2 σ^2 τ`` (Gelb 1974, ch. 3), so each update at interval ``Δt`` carries
+        it as white noise of variance ``(slip_std |v|)^2 2 τ / Δt``; without it, 50 updates
+        a second of a slipping wheel outvote the visual odometry (thesis 4.1.1: VO "often
+        performs better in high-slip environments"). The first sample only sets the
+        interval."""
         if not self._propagated:
             return
         vx, vy, yaw_rate = v_body
         self._wheel_sum += (vx, vy, yaw_rate)
         self._wheel_n += 1
-        cov = np.diag([speed_std**2, speed_std**2, vz_std**2])
-        self.filter.update_body_velocity(np.array([vx, vy, 0.0]), cov, yaw_rate=yaw_rate, yaw_rate_var=yaw_rate_std**2)
+        t_prev, self._wheel_t = self._wheel_t, t
+        if t_prev is None or t <= t_prev:
+            return
+        k = slip_std**2 * 2.0 * slip_correlation_s / (t - t_prev)
+        speed_var = speed_std**2 + k * (vx * vx + vy * vy)
+        cov = np.diag([speed_var, speed_var, vz_std**2])
+        self.filter.update_body_velocity(np.array([vx, vy, 0.0]), cov, yaw_rate=yaw_rate, yaw_rate_var=yaw_rate_std**2 + k * yaw_rate**2)
 
     def on_capture(self, frame_id: int, t: float, T_body_cam: np.ndarray) -> bool:
         """An image trigger: clone the filter state. Returns False before initialisation
@@ -233,7 +261,7 @@ class LocalEstimator:
             kf = result.keyframe_id
             if kf != result.frame_id and kf in self._T_body_cam and result.frame_id in self._T_body_cam:
                 T_b, cov_b = delta_in_body_frame(
-                    result.T_kf_cur, result.cov, self._T_body_cam[kf], self._T_body_cam[result.frame_id]
+                    result.T_kf_cur, result.cov, self._T_body_cam[kf], self._T_body_cam[result.frame_id], self._extrinsic_cov
                 )
                 cov_b = 0.5 * (cov_b + cov_b.T)
                 applied = self.filter.update_relative_pose(kf, result.frame_id, T_b, cov_b)

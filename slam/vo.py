@@ -24,7 +24,12 @@ What it does per stereo pair
 4. The covariance of the delta is the inverse of the final Gauss-Newton information
    matrix, ``(J^T W J)^-1``: it comes from the pixel noise, the point depths and the
    inlier geometry of this very measurement (the "uncertainty estimates stemming from
-   propagated measurement noise" of 4.1.1), not from a constant.
+   propagated measurement noise" of 4.1.1), not from a constant. Pixel noise averages
+   out over the points; a calibration error does not. So the covariance also holds the
+   rig's calibration uncertainty as consider parameters (our addition): a disparity
+   offset common to all points (:func:`disparity_bias_sensitivity`) here, and the
+   camera-IMU extrinsics where the delta goes to the body frame
+   (:func:`delta_in_body_frame`).
 5. Keyframe policy: a history of ``n_keyframes`` (thesis 4.1.1: n = 5). The current
    frame becomes a keyframe when the inliers fall below a share of the keyframe's
    points or a minimum count, when the motion since the keyframe exceeds a translation
@@ -121,12 +126,21 @@ class VoParams:
     keyframe_max_rotation_deg: float = 10.0
     # noise (thesis 5.1.1: 0.5 px)
     pixel_noise_px: float = DEFAULT_PIXEL_ERROR
+    # calibration uncertainty (consider parameters, :func:`disparity_bias_sensitivity` and
+    # :func:`delta_in_body_frame`): a disparity offset common to all points (0.25 px: a
+    # rectification yaw of 0.04 deg at the LRU's 338 px focal length) and the camera-IMU
+    # calibration's rotation and translation (0.2 deg, 5 mm; hand-eye calibration, thesis 4.1)
+    disparity_bias_px: float = 0.25
+    extrinsic_rotation_std_rad: float = math.radians(0.2)
+    extrinsic_translation_std_m: float = 0.005
 
     def __post_init__(self):
         positive = ("max_features", "grid_cols", "grid_rows", "min_features", "max_point_error_m", "klt_window_px",
                     "klt_fb_max_px", "ransac_threshold_px", "ransac_iterations", "refine_iterations",
                     "inlier_chi2", "min_inliers", "n_keyframes", "pixel_noise_px")
         bad = [f"{k}={getattr(self, k)}" for k in positive if not getattr(self, k) > 0]
+        bad += [f"{k}={getattr(self, k)}" for k in ("disparity_bias_px", "extrinsic_rotation_std_rad", "extrinsic_translation_std_m")
+                if not getattr(self, k) >= 0]
         if bad:
             raise VoException(f"VoParams must be positive: {', '.join(bad)}")
         if self.min_inliers < 4:
@@ -182,15 +196,28 @@ class _Measurement:
 
 
 def delta_in_body_frame(
-    T_kf_cur: np.ndarray, cov: np.ndarray, T_body_cam_kf: np.ndarray, T_body_cam_cur: np.ndarray | None = None
+    T_kf_cur: np.ndarray,
+    cov: np.ndarray,
+    T_body_cam_kf: np.ndarray,
+    T_body_cam_cur: np.ndarray | None = None,
+    extrinsic_cov: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A camera delta as the delta of the body frames it was mounted on (e.g. the filter's
     IMU frame): ``T_b = X_kf T_kf_cur X_cur^-1`` with the camera extrinsics ``X`` (4x4
     ``T_body_cam`` at the keyframe's and at the current capture; they differ on a
     moving pan-tilt head). With ``T = T_hat Exp(xi)``, ``T_b = T_b_hat Exp(Ad_{X_cur} xi)``,
-    so the covariance becomes ``Ad cov Ad^T`` in the same right-perturbation convention."""
+    so the covariance becomes ``Ad cov Ad^T`` in the same right-perturbation convention.
+
+    ``extrinsic_cov`` (6x6, camera tangent): the uncertainty of the calibrated ``X``, a
+    fixed error ``X_true = X Exp(e)`` at both captures. The body delta is then that of
+    the camera delta ``Exp(e) T Exp(-e) = T Exp((Ad_{T^-1} - I) e)`` to first order, so
+    ``A Σ_e A^T`` with ``A = Ad_{T^-1} - I`` joins ``cov`` (a consider parameter: it
+    grows with the delta's rotation and translation and vanishes for no motion)."""
     X_kf = np.asarray(T_body_cam_kf, dtype=float)
     X_cur = X_kf if T_body_cam_cur is None else np.asarray(T_body_cam_cur, dtype=float)
+    if extrinsic_cov is not None:
+        A = adjoint(np.linalg.inv(T_kf_cur)) - np.eye(6)
+        cov = cov + A @ extrinsic_cov @ A.T
     Ad = adjoint(X_cur)
     return X_kf @ T_kf_cur @ np.linalg.inv(X_cur), Ad @ cov @ Ad.T
 
@@ -210,6 +237,38 @@ def stereo_point_covariance(X: np.ndarray, calib: StereoCalibration, pixel_error
                   np.stack([-z, zero, z, zero], -1)], axis=1)  # (n, 3, 4)
     k = (pixel_error * z / calib.fb) ** 2
     return k[:, None, None] * np.einsum("nik,njk->nij", A, A)
+
+
+def _reprojection(T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarray, K: np.ndarray, s2: float):
+    """Residuals ``r`` (n, 2), Jacobians ``J`` (n, 2, 6) for the right perturbation of ``T``,
+    weights ``W`` (n, 2, 2) and ``J_p R^T`` (n, 2, 3, the residual's derivative by ``-X``)
+    of keyframe points ``X`` seen at ``uv`` from the camera at ``T`` (see :func:`refine_pose`)."""
+    f = K[0, 0]
+    R, t = T[:3, :3], T[:3, 3]
+    Xc = (X - t) @ R  # R^T (X - t)
+    zi = 1.0 / Xc[:, 2]
+    r = uv - (f * Xc[:, :2] * zi[:, None] + K[:2, 2])
+    Jp = np.zeros((len(X), 2, 3))
+    Jp[:, 0, 0] = Jp[:, 1, 1] = f * zi
+    Jp[:, :, 2] = -f * Xc[:, :2] * (zi**2)[:, None]
+    JpRt = Jp @ R.T  # J_p R^T
+    C = JpRt @ cov_X @ JpRt.transpose(0, 2, 1)
+    C[:, 0, 0] += s2
+    C[:, 1, 1] += s2
+    det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+    W = np.empty_like(C)
+    W[:, 0, 0], W[:, 1, 1] = C[:, 1, 1] / det, C[:, 0, 0] / det
+    W[:, 0, 1] = W[:, 1, 0] = -0.5 * (C[:, 0, 1] + C[:, 1, 0]) / det
+    # J = J_p [[X_c]x, -I]: columns of [X_c]x written out
+    J = np.zeros((len(X), 2, 6))
+    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+    for k in range(2):
+        a, b_, cz = Jp[:, k, 0], Jp[:, k, 1], Jp[:, k, 2]
+        J[:, k, 0] = b_ * z - cz * y
+        J[:, k, 1] = cz * x - a * z
+        J[:, k, 2] = a * y - b_ * x
+    J[:, :, 3:] = -Jp
+    return r, J, W, JpRt
 
 
 def refine_pose(
@@ -233,35 +292,10 @@ def refine_pose(
     the delta), residuals (n, 2) and weights (n, 2, 2).
     """
     T = np.array(T, dtype=float)
-    f = K[0, 0]
-    c = K[:2, 2]
     s2 = pixel_noise_px**2
-    n = len(X)
-    Jp = np.zeros((n, 2, 3))
-    J = np.zeros((n, 2, 6))
     for it in range(iterations + 1):
         R, t = T[:3, :3], T[:3, 3]
-        Xc = (X - t) @ R  # R^T (X - t)
-        zi = 1.0 / Xc[:, 2]
-        r = uv - (f * Xc[:, :2] * zi[:, None] + c)
-        Jp[:, 0, 0] = Jp[:, 1, 1] = f * zi
-        Jp[:, :, 2] = -f * Xc[:, :2] * (zi**2)[:, None]
-        JpRt = Jp @ R.T  # J_p R^T
-        C = JpRt @ cov_X @ JpRt.transpose(0, 2, 1)
-        C[:, 0, 0] += s2
-        C[:, 1, 1] += s2
-        det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
-        W = np.empty_like(C)
-        W[:, 0, 0], W[:, 1, 1] = C[:, 1, 1] / det, C[:, 0, 0] / det
-        W[:, 0, 1] = W[:, 1, 0] = -0.5 * (C[:, 0, 1] + C[:, 1, 0]) / det
-        # J = J_p [[X_c]x, -I]: columns of [X_c]x written out
-        x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-        for k in range(2):
-            a, b_, cz = Jp[:, k, 0], Jp[:, k, 1], Jp[:, k, 2]
-            J[:, k, 0] = b_ * z - cz * y
-            J[:, k, 1] = cz * x - a * z
-            J[:, k, 2] = a * y - b_ * x
-        J[:, :, 3:] = -Jp
+        r, J, W, _ = _reprojection(T, X, cov_X, uv, K, s2)
         WJ = W @ J  # (n, 2, 6)
         H = J.reshape(-1, 6).T @ WJ.reshape(-1, 6)
         if it == iterations:
@@ -276,6 +310,24 @@ def refine_pose(
         if np.linalg.norm(xi) < 1e-10:
             iterations = it + 1  # converged: one more pass for H at the solution
     raise AssertionError("unreachable")
+
+
+def disparity_bias_sensitivity(
+    T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarray, K: np.ndarray, pixel_noise_px: float, fb: float
+) -> np.ndarray:
+    """How the refined pose moves (6-vector, the tangent of :func:`refine_pose`) per pixel of
+    a disparity offset common to all keyframe points: a residual yaw of the rectified
+    pair, which no per-point noise model averages out. With ``d = f b / z``, an offset
+    ``δ`` moves each point by ``dX/dδ = -X z / (f b)``; at the solution the pose moves by
+    ``H^-1 Σ J_i^T W_i dr_i/dδ`` with ``dr_i/dδ = J_p R^T X_i z_i / (f b)`` (the
+    Gauss-Newton step of the perturbed problem). ``σ_δ^2 s s^T`` is then the delta's
+    covariance from the calibration's uncertainty, a consider parameter in Schmidt's
+    sense (the estimate does not solve for it)."""
+    _, J, W, JpRt = _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
+    H = J.reshape(-1, 6).T @ (W @ J).reshape(-1, 6)
+    dr = np.einsum("nij,nj->ni", JpRt, X * (X[:, 2] / fb)[:, None])
+    g = np.einsum("nki,nkl,nl->i", J, W, dr)
+    return np.linalg.solve(H, g)
 
 
 # --------------------------------------------------------------------------- the odometry
@@ -528,6 +580,9 @@ class StereoVO:
         T, H, _, _ = refine_pose(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, p.refine_iterations - half)
         try:
             cov = np.linalg.inv(H)
+            if p.disparity_bias_px > 0:
+                s = disparity_bias_sensitivity(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, c.fb)
+                cov += p.disparity_bias_px**2 * np.outer(s, s)
         except np.linalg.LinAlgError:
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
         std = np.sqrt(np.diag(cov))

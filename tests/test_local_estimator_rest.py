@@ -20,7 +20,7 @@ from slam.health import HealthState
 from slam.lie import rot_zyx, se3, se3_inv, so3_exp
 from slam.local_estimator import LocalEstimator
 from slam.rest import RestDetector, RestException, RestParams
-from slam.vo import VoFailure, VoResult
+from slam.vo import VoFailure, VoParams, VoResult
 
 G = 9.81
 GVEC = np.array([0.0, 0.0, -G])
@@ -314,20 +314,23 @@ VO_COV = np.diag([0.002**2] * 3 + [0.005**2] * 3)  # [rotation (rad), translatio
 
 
 class NoImages:
-    """Stands in for slam.vo.StereoVO where the test hands in VO results itself."""
+    """Stands in for slam.vo.StereoVO where the test hands in VO results itself (from
+    the truth: no calibration error to allow for)."""
+
+    params = VoParams(extrinsic_rotation_std_rad=0.0, extrinsic_translation_std_m=0.0)
 
 
 class VoFeed:
     """Plays slam.vo.StereoVO's part from the truth: a frame every ``every`` IMU samples
     (5 Hz), cloned by :meth:`LocalEstimator.on_capture` and answered at once with a
     :class:`VoResult`: ``mode`` ``"ok"`` (the true body delta from the active keyframe,
-    noise of ``VO_COV``; every ``kf_every``-th frame becomes the next keyframe, five kept),
+    noise of ``cov``; every ``kf_every``-th frame becomes the next keyframe, five kept),
     ``"fail"`` (too few inliers; the frame restarts tracking as a keyframe, as StereoVO
     does on a textured image), ``"outlier"`` (an ok delta 1 m off) or ``"none"`` (no
     frames)."""
 
-    def __init__(self, truth: Truth, rng: np.random.Generator, every: int = 40, kf_every: int = 5):
-        self.truth, self.rng, self.every, self.kf_every = truth, rng, every, kf_every
+    def __init__(self, truth: Truth, rng: np.random.Generator, every: int = 40, kf_every: int = 5, cov: np.ndarray = VO_COV):
+        self.truth, self.rng, self.every, self.kf_every, self.cov = truth, rng, every, kf_every, cov
         self.k_of: dict[int, int] = {}
         self.history: list[int] = []
         self.active: int | None = None
@@ -350,14 +353,14 @@ class VoFeed:
         else:
             kf = self.active
             T = se3_inv(self.truth.T(self.k_of[kf])) @ self.truth.T(k)
-            n = self.rng.multivariate_normal(np.zeros(6), VO_COV)
+            n = self.rng.multivariate_normal(np.zeros(6), self.cov)
             T = se3(T[:3, :3] @ so3_exp(n[:3]), T[:3, 3] + T[:3, :3] @ n[3:])
             if self.mode == "outlier":
                 T = T @ se3(np.eye(3), [1.0, 0.0, 0.0])
             new_kf = j - kf >= self.kf_every
             if new_kf:
                 self._keyframe(j)
-            result = VoResult(t, j, True, None, kf, T, VO_COV, 100, empty, new_kf, tuple(self.history))
+            result = VoResult(t, j, True, None, kf, T, self.cov, 100, empty, new_kf, tuple(self.history))
         est.on_vo(result)
 
     def _keyframe(self, j: int) -> None:
@@ -405,7 +408,7 @@ def test_quiet_cruise_is_vetoed_by_the_controller_wheels_or_vo():
             if command:
                 e.on_motion_command(tr.t[k] >= 4.0)
             if wheels and k % 4 == 0 and e.initialised:
-                e.on_wheel_odometry(np.array([tr.v[k, 0], 0.0, 0.0]), 0.03, 0.03)
+                e.on_wheel_odometry(tr.t[k], np.array([tr.v[k, 0], 0.0, 0.0]), 0.03, 0.03)
             if vo_feed is not None:
                 vo_feed(k, e)
 

@@ -23,6 +23,7 @@ from sim.scenario import (
     slam_kwargs,
 )
 from slam.agent import AgentParams
+from slam.filter import FilterParams
 from slam.graph import GraphParams, RobustKernel, Topology
 from slam.health import HealthParams
 from slam.local_estimator import LocalEstimator
@@ -31,6 +32,7 @@ from slam.matcher import MatcherParams, MatchMode
 from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.submap import SubmapParams
+from slam.vo import VoParams
 
 SCENARIOS = sorted(Path(__file__).parents[1].joinpath("scenarios").glob("*.yaml"))
 
@@ -109,6 +111,8 @@ def test_slam_keys_take_slam_defaults_and_units():
     assert AgentParams(**slam_kwargs(AgentParams, GraphConfig(), DetectionConfig())) == AgentParams()
     assert HealthParams(**slam_kwargs(HealthParams, HealthConfig())) == HealthParams()
     assert RestParams(**slam_kwargs(RestParams, SlamConfig())) == RestParams()
+    assert VoParams(**slam_kwargs(VoParams, SlamConfig())) == VoParams()
+    assert slam_kwargs(FilterParams, SlamConfig()) == {"gyro_scale_std": 0.001, "gyro_scale_correlation_s": 5.0}
     assert slam_kwargs(RestParams, SlamConfig(zero_velocity=False)) == {"zero_velocity": False}
     linked = 0
     for section in (MappingConfig, GraphConfig, DetectionConfig, MatchingConfig, SlamConfig, HealthConfig):
@@ -118,11 +122,12 @@ def test_slam_keys_take_slam_defaults_and_units():
                 assert param.degrees == key.endswith("_deg"), key
                 if isinstance(param.slam_default, Enum):  # the schema lists exactly the enum's values
                     assert typing.get_args(info.annotation) == tuple(e.value for e in type(param.slam_default)), key
-    assert linked == 39
+    assert linked == 46
     # units and enums on the way to slam
     kwargs = slam_kwargs(ObstacleParams, MappingConfig(max_slope_deg=35.0, max_depth_error_m=0.3))
     assert kwargs["max_slope_rad"] == math.radians(35.0) and kwargs["max_error_m"] == 0.3
     assert slam_kwargs(SubmapParams, MappingConfig(max_depth_error_m=0.3))["max_depth_error_m"] == 0.3
+    assert slam_kwargs(VoParams, SlamConfig(camera_rotation_std_deg=0.5))["extrinsic_rotation_std_rad"] == math.radians(0.5)
     agent = slam_kwargs(AgentParams, GraphConfig(pose_buffer_s=60), DetectionConfig(uncertainty="lut", max_tilt_deg=45))
     assert agent["uncertainty"] is UncertaintyModel.LUT and agent["buffer_horizon_s"] == 60
     assert agent["max_target_tilt_rad"] == math.radians(45)
@@ -130,7 +135,7 @@ def test_slam_keys_take_slam_defaults_and_units():
     assert slam_kwargs(GraphParams, GraphConfig(robust="gnc"))["robust"] is RobustKernel.GNC
     assert slam_kwargs(MatcherParams, MatchingConfig(mode="6d"))["mode"] is MatchMode.SIX_D
     wheel = slam_kwargs(LocalEstimator.on_wheel_odometry, SlamConfig())
-    assert wheel == {"speed_std": 0.03, "yaw_rate_std": 0.03, "vz_std": 0.05}
+    assert wheel == {"speed_std": 0.03, "yaw_rate_std": 0.03, "vz_std": 0.05, "slip_std": 0.03, "slip_correlation_s": 5.0}
 
 
 def test_set_overrides_by_name_and_index_are_validated():

@@ -129,6 +129,7 @@ def _robot_results(run: Run, out: Path, name: str, truth: inputs.TeamTruth, reco
         "route": {"waypoints": len(waypoints), **counts},
         "camera_frames": log.frames,
         "stereo": stereo,
+        "imaging": _imaging(log),
         **sections,
         "faults": fault_metrics(runtime.onboard),  # injected wrong measurements (sim/run/faults.py)
         "health": inputs.health_report(runtime.onboard, run.mission_s) if runtime.onboard is not None else None,
@@ -150,6 +151,21 @@ def _stereo(name: str, runtime) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         rows += acc.rows(name, rig.name)
         stereo[rig.name] = acc.summary(STEREO_SUMMARY_BINS)
     return stereo, rows
+
+
+def _imaging(log) -> dict[str, Any]:
+    """Per stereo rig with a camera model (sim/world/imaging.py): the exposure and gain
+    its auto exposure chose, and the share of the left image's pixels at full well."""
+    out = {}
+    for rig, rows in log.exposure.items():
+        a = np.asarray(rows, dtype=float)
+        out[rig] = {
+            "exposure_ms": {"median": 1e3 * float(np.median(a[:, 0])), "min": 1e3 * float(a[:, 0].min()), "max": 1e3 * float(a[:, 0].max())},
+            "gain": {"median": float(np.median(a[:, 1])), "max": float(a[:, 1].max())},
+            "saturated_share": {"mean": float(a[:, 2].mean()), "max": float(a[:, 2].max())},
+            "frames_over_1_percent_saturated": int(np.count_nonzero(a[:, 2] > 0.01)),
+        }
+    return out
 
 
 def _evaluate_onboard(run: Run, out: Path, name: str, truth: inputs.TeamTruth, recorder) -> tuple[dict[str, Any], RobotPlots]:
@@ -235,6 +251,8 @@ def _filter_section(
     except trajectory.EvaluationError as exc:
         section = {"status": f"not evaluated: {exc}"}
     section["nees_roll_pitch_velocity"], nees = trajectory.nees_report(filt.observable, filt.observable_true, filt.observable_cov)
+    for key, dims, angles in (("nees_roll_pitch", slice(0, 2), 2), ("nees_velocity", slice(2, 5), 0)):  # which part is off
+        section[key] = trajectory.nees_report(filt.observable[:, dims], filt.observable_true[:, dims], filt.observable_cov[:, dims, dims], angles)[0]
     bias, bias_true = filt.bias, filt.bias_true
     section["bias_error"] = {
         "accel_initial_mps2": float(np.linalg.norm(bias_true[0, :3] - bias[0, :3])),

@@ -42,7 +42,7 @@ from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.stereo import StereoCalibration, depth_error
 from slam.submap import SubmapParams
-from slam.vo import StereoVO, VoResult
+from slam.vo import StereoVO, VoParams, VoResult
 
 #: Tilt error of the resting initialisation beyond the accelerometer bias: the mean of
 #: 0.5 s of samples has a noise of a few thousandths of a degree; the rest is margin for
@@ -50,13 +50,15 @@ from slam.vo import StereoVO, VoResult
 RESTING_TILT_STD = math.radians(0.2)
 
 
-def filter_params(spec: ImuSpec, gravity: float) -> FilterParams:
-    """The filter's noise model from the IMU's datasheet values (what the robot knows).
+def filter_params(spec: ImuSpec, gravity: float, cfg: SlamConfig) -> FilterParams:
+    """The filter's noise model from the IMU's datasheet values (what the robot knows) and
+    the scenario's ``slam`` keys.
 
     Roll and pitch start from the resting accelerometer; the filter's prior correlates
     their error with the accelerometer bias (b / g), so only the small rest of the tilt
     error (:data:`RESTING_TILT_STD`) is independent."""
     return FilterParams(
+        **slam_kwargs(FilterParams, cfg),
         initial_roll_pitch_std=RESTING_TILT_STD,
         gyro_noise_density=spec.gyro_noise_density,
         accel_noise_density=spec.accel_noise_density,
@@ -160,8 +162,8 @@ class OnboardStack:
         self.vo_rig = rigs[rig_name]
         mapping = cfg.mapping
         self.estimator = LocalEstimator(
-            filter_params(imu_spec, gravity),
-            StereoVO(calibration(self.vo_rig)),
+            filter_params(imu_spec, gravity, cfg),
+            StereoVO(calibration(self.vo_rig), VoParams(**slam_kwargs(VoParams, cfg))),
             init_time=robot.cfg.route.start_delay_s,
             rest_window=cfg.initial_rest_s,
             frame_switch_distance=None if mapping.enabled else cfg.frame_switch_distance_m,
@@ -278,9 +280,9 @@ class OnboardStack:
 
         self.lane.submit("strapdown", work=work, on_done=lambda out, t: self._send(out))
 
-    def wheel_odometry(self, v_body: np.ndarray) -> None:
+    def wheel_odometry(self, now: float, v_body: np.ndarray) -> None:
         if self.use_odometry:
-            self.lane.submit("filter_update", work=lambda: self.estimator.on_wheel_odometry(v_body, **self.odometry_noise))
+            self.lane.submit("filter_update", work=lambda: self.estimator.on_wheel_odometry(now, v_body, **self.odometry_noise))
 
     def capture(self, frame_id: int, now: float, T_body_cam: np.ndarray) -> None:
         """Image trigger of the VO rig: the filter clones its state."""

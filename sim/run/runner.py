@@ -137,6 +137,7 @@ class RobotLog:
     odom: list[np.ndarray] = field(default_factory=list)  # (3,) v_x, v_y, yaw rate (measured)
     frames: int = 0
     depth_error: dict[str, DepthErrorAccumulator] = field(default_factory=lambda: defaultdict(DepthErrorAccumulator))
+    exposure: dict[str, list[tuple[float, float, float]]] = field(default_factory=lambda: defaultdict(list))  # per rig: s, gain, saturated share
 
 
 @dataclass
@@ -481,7 +482,7 @@ class Run:
                 log.odom_t.append(now)
                 log.odom.append(odom)
                 if onboard is not None:
-                    onboard.wheel_odometry(odom)
+                    onboard.wheel_odometry(now, odom)
             t = self.timers.add("sensors", t)
             if tick % runtime.camera_every == 0:
                 self._capture(runtime, tick // runtime.camera_every, now)
@@ -497,7 +498,9 @@ class Run:
             t = self.timers.add("rendering", t)
             if imaging is not None:
                 rate = self._camera_rate(rig.left_camera) if imaging.params.motion_blur else None
+                exposure_s, gain = imaging.exposure_s, imaging.gain
                 stereo.left, stereo.right = imaging.expose(stereo.left, stereo.right, rate)
+                runtime.log.exposure[rig.name].append((exposure_s, gain, imaging.saturated_share))
                 self.timers.add("imaging", t)
             if self.recorder is not None and frame % self.scenario.output.recording_image_every == 0:
                 t = time.perf_counter()
