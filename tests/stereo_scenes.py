@@ -89,20 +89,22 @@ def textured_heightfield_scene(width: int, height: int, seed: int = 0, size_m: f
     return model, data, rig, CameraConfig(width=width, height=height)
 
 
-def procedural_terrain_scene(width: int, height: int, seed: int = 3, size_m: float = 20.0):
-    """The same head over sim.world.terrain's heightfield, rocks and regolith albedo."""
+def procedural_terrain_scene(width: int, height: int, seed: int = 3, size_m: float = 20.0, texture_px: int = 1024, light=None):
+    """The same head over sim.world.terrain's heightfield, rocks and regolith albedo
+    (``texture_px`` texels of 2 cm, repeated as often as the terrain needs), lit by ``light``
+    (a ``sim.scenario.LightRealism``; default: add_terrain's)."""
     from dm_control import mjcf
 
     from sim.scenario import TerrainConfig
     from sim.world.terrain import add_terrain, generate_terrain
 
     cfg = TerrainConfig.model_validate(
-        {"size_m": size_m, "craters": {"count": 2}, "rocks": {"count": 8}, "texture": {"size_px": 1024}}
+        {"size_m": size_m, "craters": {"count": 2}, "rocks": {"count": 8}, "texture": {"size_px": texture_px}}
     )
     head_xy = (-size_m / 4, 0.0)
     terrain = generate_terrain(cfg, np.random.default_rng(seed), [(head_xy, 1.0)])
     root = mjcf.RootElement(model="scene")
-    add_terrain(root, terrain)
+    add_terrain(root, terrain, light)
     root.statistic.extent = size_m
     glob = getattr(root.visual, "global")
     glob.offwidth, glob.offheight = 640, 480

@@ -41,6 +41,7 @@ import numpy as np
 from sim.scenario import CameraConfig, ImuRealism, WheelOdometryConfig, WheelRealism
 from sim.world.calibration_errors import RigError
 from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
+from sim.world.terrain_tiles import TerrainTiles
 
 __all__ = [
     "IMU_PRESETS",
@@ -332,6 +333,7 @@ class _RenderTarget:
         self.rect = mujoco.MjrRect(0, 0, width, height)
         self.rgb = np.empty((height, width, 3), np.uint8)
         self.zbuf = np.empty((height, width), np.float32)
+        self.tiles = TerrainTiles.from_model(model)
 
     def make_current(self) -> None:
         # always: other code (a mujoco.Renderer, another target) may have switched contexts
@@ -363,7 +365,9 @@ class StereoRenderer:
     depth beyond ``camera.zfar_m`` is reported as ``inf`` (the skybox has depth in
     MuJoCo, at 0.5..1 x the far plane, and must not pass for terrain).
 
-    Fast on CPU: reflections off, shadows only if a light casts them, MSAA off (``vis.quality.offsamples = 0``,
+    Fast on CPU: the terrain drawn as tiles culled to the view, at levels of detail
+    (:mod:`sim.world.terrain_tiles`, when the model has them and no light casts shadows),
+    reflections off, shadows only if a light casts them, MSAA off (``vis.quality.offsamples = 0``,
     set before the render context is made), one GL context per (model, width, height)
     shared by all renderers, and the ground-truth depth is read from the depth buffer
     of the left image's own pass. Call :meth:`close` when done (EGL teardown).
@@ -447,6 +451,11 @@ class StereoRenderer:
         mujoco.mjv_updateScene(m, data, t.option, None, self._mjv_cams[0], mujoco.mjtCatBit.mjCAT_ALL, scene)
         scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self._shadows
         scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        if t.tiles is not None and not self._shadows:  # with shadows: the hfield (sim/world/terrain_tiles.py)
+            cam = self._cam_ids[0]
+            chosen = t.tiles.select(data.cam_xpos[cam], data.cam_xmat[cam], float(m.cam_fovy[cam]), t.width / t.height,
+                                    t.height, self.near_m, self.far_m, margin=self.rig.baseline_m)
+            t.tiles.replace_hfield(scene, chosen)
         mujoco.mjr_render(t.rect, scene, t.context)
         mujoco.mjr_readPixels(t.rgb, t.zbuf if with_depth else None, t.rect, t.context)
         left = self._image(t.rgb)
