@@ -11,6 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 
+import sim.world.terrain as terrain
 import sim.world.terrain_tiles as terrain_tiles
 from sim.scenario import LightRealism
 from sim.world.sensors import StereoRenderer
@@ -172,3 +173,19 @@ def test_with_shadows_the_cameras_draw_the_hfield(monkeypatch):
     finally:
         renderer.close()
     assert np.isfinite(frame.depth).mean() > 0.5  # the ground is there
+
+
+def test_a_grid_too_large_for_tiles_keeps_the_hfield(monkeypatch):
+    """Above MAX_TILED_CELLS cells per side the model has no tiles and the renderer draws
+    the hfield (large terrains would need gigabytes of tile meshes)."""
+    monkeypatch.setattr(terrain, "MAX_TILED_CELLS", 150)
+    small = procedural_terrain_scene(160, 120, size_m=14.0)  # 140 cells
+    large = procedural_terrain_scene(160, 120, size_m=16.0)  # 160 cells
+    assert TerrainTiles.from_model(small[0]) is not None
+    assert TerrainTiles.from_model(large[0]) is None
+    model, data, rig, camera = large
+    renderer = StereoRenderer(model, rig, camera)
+    try:
+        assert np.isfinite(renderer.render(data, with_depth=True).depth).mean() > 0.5
+    finally:
+        renderer.close()

@@ -44,7 +44,7 @@ from sim.world.markers import (
     MarkerSpec,
     add_marker,
 )
-from sim.world.terrain_tiles import add_terrain_tiles
+from sim.world.terrain_tiles import MAX_TILED_CELLS, add_terrain_tiles
 from slam.lie import yaw_quat
 
 HFIELD_BASE_M = 1.0  # depth of MuJoCo's hfield box below the lowest terrain point
@@ -462,8 +462,8 @@ SHADOW_MAP_SIZE = 2048
 
 def add_terrain(root: mjcf.RootElement, terrain: Terrain, light: LightRealism | None = None) -> None:
     """Add terrain, rocks, lander, sun, sky and fast render settings to ``root``; without
-    the sun's shadows also the terrain's tiles for the cameras
-    (:func:`sim.world.terrain_tiles.add_terrain_tiles`).
+    the sun's shadows, and up to ``MAX_TILED_CELLS`` grid cells per side, also the
+    terrain's tiles for the cameras (:func:`sim.world.terrain_tiles.add_terrain_tiles`).
 
     ``light`` (a scenario's ``realism.light``): the sun's direction (default: the
     preset's), whether it casts shadows, and whether a camera-fixed headlight fills in;
@@ -489,7 +489,7 @@ def add_terrain(root: mjcf.RootElement, terrain: Terrain, light: LightRealism | 
                    rgba=[*preset.tint, 1], specular=0, shininess=0, reflectance=0)
     root.worldbody.add("geom", name="terrain", type="hfield", hfield="terrain", pos=[0, 0, h_min],
                        material="regolith")
-    if not light.shadows:  # cameras draw the hfield itself under shadows (sim/world/terrain_tiles.py)
+    if not light.shadows and n - 1 <= MAX_TILED_CELLS:  # else the cameras draw the hfield (sim/world/terrain_tiles.py)
         add_terrain_tiles(root, h, terrain.size_m, rep)
 
     tile_m = terrain.size_m / rep

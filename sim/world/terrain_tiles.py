@@ -24,9 +24,12 @@ meet with gaps up to their height deviation; skirts (Ulrich 2002: strips hanging
 every tile edge, facing out) close them.
 
 When the sun casts shadows the cameras draw the hfield itself: MuJoCo's shadow map then
-holds the hfield's closed box, and open sheets of tiles shade differently where the sun
-grazes a slope (up to 80 grey levels on 3 % of a view into a crater wall, sun 10 deg high). This is written here because MuJoCo has no
-level of detail or culling of its own and no maintained Python library adds it.
+holds the hfield's closed box, while open sheets of tiles shade differently where the sun
+grazes a slope (up to 80 grey levels on 3 % of a view into a crater wall, sun 10 deg high)
+and skirts cast dots of shadow along the seams.
+
+Written here because MuJoCo has no level of detail or culling of its own and no maintained
+Python library adds them to it.
 """
 
 from __future__ import annotations
@@ -44,6 +47,10 @@ SCREEN_ERROR_PX = 0.5
 LOD_STRIDES = (1, 2, 4, 8)
 #: Tile side in metres (rounded to a multiple of the coarsest stride in grid cells).
 TILE_M = 4.0
+#: Largest terrain grid (cells per side) drawn as tiles: a tiled cell costs about 256 bytes
+#: of mesh (three vertices per triangle for flat shading, all levels), so 640 x 640 cells
+#: (64 m at 0.1 m) take about 105 MB; larger grids are drawn as the one hfield.
+MAX_TILED_CELLS = 640
 #: Skirts reach this much below the deepest gap any two levels can leave (m).
 SKIRT_MARGIN_M = 0.02
 #: Prefix of the tiles' mesh assets, ``terrain_tile_<tile>_<stride>``; a custom numeric of
