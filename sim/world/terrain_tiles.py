@@ -147,13 +147,10 @@ def add_terrain_tiles(root: mjcf.RootElement, heights: np.ndarray, size_m: float
     cells = max(coarsest, round(TILE_M / res / coarsest) * coarsest)
     starts = range(0, n - 1, cells)
     tiles = [(i0, j0, min(cells, n - 1 - i0), min(cells, n - 1 - j0)) for i0 in starts for j0 in starts]
-    errors = []
-    for i0, j0, ci, cj in tiles:
-        sub = heights[i0 : i0 + ci + 1, j0 : j0 + cj + 1]
-        errors.append({s: _coarse_error(sub, s) for s in LOD_STRIDES if ci % s == 0 and cj % s == 0})
-    depth = 2 * max(max(e.values()) for e in errors) + SKIRT_MARGIN_M
-    for k, ((i0, j0, ci, cj), level_errors) in enumerate(zip(tiles, errors)):
-        sub = heights[i0 : i0 + ci + 1, j0 : j0 + cj + 1]
+    subs = [heights[i0 : i0 + ci + 1, j0 : j0 + cj + 1] for i0, j0, ci, cj in tiles]
+    errors = [{s: _coarse_error(sub, s) for s in LOD_STRIDES if ci % s == 0 and cj % s == 0} for sub, (_, _, ci, cj) in zip(subs, tiles)]
+    depth = 2 * max(max(e.values()) for e in errors) + SKIRT_MARGIN_M  # every level's skirts cover every gap
+    for k, ((i0, j0, ci, cj), sub, level_errors) in enumerate(zip(tiles, subs, errors)):
         x0, y0 = -half + j0 * res, -half + i0 * res
         lo, hi = float(sub.min()) - depth, float(sub.max())
         centre = np.array([x0 + cj * res / 2, y0 + ci * res / 2, (lo + hi) / 2])
