@@ -236,3 +236,61 @@ def test_ray_gives_the_same_metrics_as_the_process_pool(tmp_path):
         timing = [k for k in pool if k.startswith("runtime.") or "wall" in k]
         assert {k: v for k, v in pool.items() if k not in timing} == {k: v for k, v in ray.items() if k not in timing}
         assert (tmp_path / "ray" / run["folder"] / "trajectories" / "rover.gt.tum").is_file()
+
+
+def _descendants(pid: int) -> set[int]:
+    """The processes below ``pid`` (from /proc)."""
+    parents = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {child for child, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return found
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process tree from /proc")
+def test_sigterm_ends_the_workers_and_puts_running_runs_back_to_pending(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    path = write_batch(tmp_path, seeds=[1, 2])
+    out = tmp_path / "out"
+    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump({**TINY, "duration_s": 600}))  # far longer than the test waits
+    cli = subprocess.Popen([sys.executable, "-m", "sim.cli", "batch", str(path), "--out", str(out), "--workers", "2"])
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        index = out / "index.json"
+        if index.is_file() and [r["status"] for r in read_index(out)["runs"]] == ["running", "running"]:
+            break
+        time.sleep(0.2)
+    else:
+        cli.kill()
+        pytest.fail("the runs never started")
+    time.sleep(2.0)  # the workers are simulating
+    workers = _descendants(cli.pid)
+    assert workers
+    cli.send_signal(signal.SIGTERM)
+    assert cli.wait(timeout=60) == 130
+    assert [r["status"] for r in read_index(out)["runs"]] == ["pending", "pending"]
+    time.sleep(1.0)
+    alive = {pid for pid in workers if _alive(pid)}
+    for pid in alive:
+        os.kill(pid, signal.SIGKILL)
+    assert not alive

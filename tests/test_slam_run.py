@@ -82,7 +82,8 @@ def test_each_robot_knows_where_the_other_is(runs):
         peer = "lru2" if name == "lru1" else "lru1"
         assert peer in beliefs
         own = dict(zip(r.onboard.slam_log.t, r.onboard.slam_log.pose))
-        t, t_est, B = beliefs[peer][-1]
+        row = beliefs[peer][-1]  # [t, t of the estimate, the pose's 16 entries]
+        t, t_est, B = row[0], row[1], row[2:].reshape(4, 4)
         assert t - t_est < 3.5  # periodic estimates every second, 2 s latency, lane delays
         est = np.linalg.solve(own[t], B)  # the peer at t_est, seen from here at t: both rovers stand still
         true = np.linalg.solve(_truth(run, name, t), _truth(run, peer, t_est))

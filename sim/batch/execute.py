@@ -31,11 +31,14 @@ import json
 import multiprocessing
 import os
 import shutil
+import signal
 import tarfile
 import tempfile
+import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from multiprocessing.connection import wait
@@ -305,6 +308,24 @@ def plan(batch: Batch, out: Path, resume: bool = False, retry_failed: bool = Fal
     return index, [s for s in specs if status[s.id] not in FINAL or (retry_failed and status[s.id] in RETRYABLE)]
 
 
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM (``kill``, a cluster's scheduler) interrupts like Ctrl-C: the workers are
+    ended and the runs in progress go back to ``pending``. Only the main thread can take signals."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def execute(
     index: Index,
     todo: list[RunSpec],
@@ -330,10 +351,11 @@ def execute(
             on_finish(spec, outcome)
 
     try:
-        if use_ray:
-            run_ray(todo, out, workers, ray_address, start, finish)
-        else:
-            run_local(todo, out, workers or os.cpu_count() or 1, start, finish)
+        with _sigterm_as_interrupt():
+            if use_ray:
+                run_ray(todo, out, workers, ray_address, start, finish)
+            else:
+                run_local(todo, out, workers or os.cpu_count() or 1, start, finish)
     finally:  # an interrupted batch: what was running goes back to pending
         for spec in todo:
             if index.runs[spec.id]["status"] == "running":

@@ -24,6 +24,7 @@ if TYPE_CHECKING:
     from sim.evaluation.image_classification import ImageCells
     from sim.run.onboard import OnboardStack
     from sim.run.runner import Run
+    from sim.run.series import Rows
     from sim.scenario import MappingConfig
     from slam.agent import AgentStats, DetectionRecord
     from slam.graph import MultiRobotGraph
@@ -73,7 +74,7 @@ class SlamInput:
 
     start_t: float | None  # the filter's first estimate: the time of the map frame's truth
     estimate: Trajectory  # its own pose in its map frame (eq. 4.6)
-    beliefs: dict[str, list[tuple[float, float, np.ndarray]]]  # peer -> (t, t of the estimate, pose in this map)
+    beliefs: dict[str, Rows]  # peer -> rows [t, t of the estimate, the 16 entries of the pose in this map]
     graph: MultiRobotGraph
     marginals: dict[tuple[str, int], np.ndarray]  # submap origin -> 6x6 covariance
     stats: AgentStats

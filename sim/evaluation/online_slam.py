@@ -93,8 +93,9 @@ def _h(p: np.ndarray) -> np.ndarray:
     return np.append(np.asarray(p, float), 1.0)
 
 
-def _beliefs(beliefs: dict[str, list[tuple[float, float, np.ndarray]]], truth: TeamTruth, T_world_map: np.ndarray) -> dict[str, Any]:
-    """This robot's belief about each peer: the peer's pose at the time of its latest
+def _beliefs(beliefs: dict[str, Any], truth: TeamTruth, T_world_map: np.ndarray) -> dict[str, Any]:
+    """This robot's belief about each peer (rows ``[t, t of the estimate, the pose's 16 entries]``,
+    :class:`sim.run.onboard.SlamLog`): the peer's pose at the time of its latest
     estimate, in this robot's map, against truth at that time (what the graph knows),
     and against the peer's true pose at the moment of the belief (what the robot would
     act on, including the age of the estimate)."""
@@ -102,7 +103,8 @@ def _beliefs(beliefs: dict[str, list[tuple[float, float, np.ndarray]]], truth: T
     for peer, samples in sorted(beliefs.items()):
         peer_truth = truth.robots[peer]
         err, yaw, err_now, age = [], [], [], []
-        for t, t_est, B in samples:
+        for row in samples:
+            t, t_est, B = row[0], row[1], row[2:].reshape(4, 4)
             true = np.linalg.solve(T_world_map, peer_truth.at(t_est))
             err.append(np.linalg.norm(B[:3, 3] - true[:3, 3]))
             yaw.append(abs(wrap_angle(yaw_of(B[:3, :3]) - yaw_of(true[:3, :3]))))

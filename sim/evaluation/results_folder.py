@@ -331,6 +331,7 @@ def runtime_metrics(run: Run) -> dict[str, Any]:
         "drain_end": run.drain_end,
         "real_time_factor": run.sim_time / run.wall_s if run.wall_s > 0 else None,
         "parts_s": parts,
+        "memory": run.memory.metrics(),  # resident set size over simulated time (sim/run/memory.py)
     }
 
 

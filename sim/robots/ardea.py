@@ -8,6 +8,8 @@ Model (body frame x forward, y left, z up, origin = IMU site at the body centre)
   yaw reaction torque is k = 0.016 N m per N of thrust, alternating spin directions.
   Thrust 0..12 N per rotor (hover needs about 4.9 N);
 - landing gear: two skids along x at y = +-0.2 m, 0.29 m below the body centre;
+- contact geometry: body, arms, rotor discs and skids (what the hexacopter can hit:
+  a rover's mast, a rock, the lander); only the thin skid struts are visual;
 - stereo: the thesis's four fisheye cameras are two stereo pairs (b = 0.12 m) whose
   optical axes are tilted +60 deg (up) and -60 deg (down) from the horizon; on the
   robot each fisheye image is split and remapped into virtual pinholes. We render one
@@ -112,9 +114,9 @@ class Ardea(Robot):
             a = math.radians(ang_deg)
             x, y = ROTOR_RADIUS_M * math.cos(a), ROTOR_RADIUS_M * math.sin(a)
             base.add("geom", type="capsule", fromto=[0, 0, 0.02, x, y, 0.02], size=[0.012], mass=0.1,
-                     rgba=[0.15, 0.15, 0.15, 1], **NO_CONTACT)
+                     rgba=[0.15, 0.15, 0.15, 1])
             base.add("geom", type="cylinder", pos=[x, y, 0.045], size=[0.11, 0.004], mass=0.05,
-                     rgba=[0.5, 0.5, 0.55, 0.5], **NO_CONTACT)
+                     rgba=[0.5, 0.5, 0.55, 0.5])
             base.add("site", name=f"rotor{k}", pos=[x, y, 0.04], size=[0.01], group=4)
             root.actuator.add("motor", name=f"rotor{k}", site=f"rotor{k}",
                               gear=[0, 0, 1, 0, 0, spin * YAW_COEFF_M],

@@ -20,6 +20,9 @@ Model (body frame x forward, y left, z up, origin = IMU site at the chassis cent
   centre (about 0.8 m above ground), 120 deg apart (facing forward, back-left,
   back-right), each tilted back so that its normal points 35 deg above the horizon:
   visible from every side and from above;
+- contact geometry: chassis, wheels (spheres), mast and pan-tilt head, so that the rover
+  cannot drive under the lander's deck or through a hovering hexacopter; steering
+  columns, rocker axle and tyres are visual only;
 - a tilt guard: beyond 35 deg of roll or pitch the rover backs off along its track
   instead of driving on (the thesis's rovers would not plan through such slopes);
   against an obstacle it makes no progress and the waypoint fails as "stuck".
@@ -120,7 +123,6 @@ class LRU(Robot):
             fromto=[MAST_XY[0], MAST_XY[1], 0.08, MAST_XY[0], MAST_XY[1], PAN_HEIGHT_M - 0.02],
             size=[0.025],
             mass=1.0,
-            **NO_CONTACT,
         )
 
         # pan-tilt head
@@ -128,10 +130,10 @@ class LRU(Robot):
         pan.add(
             "joint", name="pan", type="hinge", axis=[0, 0, 1], range=[-183, 183], damping=0.5, armature=0.01
         )
-        pan.add("geom", type="cylinder", size=[0.03, 0.02], mass=0.5, **NO_CONTACT)
+        pan.add("geom", type="cylinder", size=[0.03, 0.02], mass=0.5)
         tilt = pan.add("body", name="tilt", pos=[0, 0, TILT_OFFSET_M])
         tilt.add("joint", name="tilt", type="hinge", axis=[0, 1, 0], range=[-90, 90], damping=0.5, armature=0.01)
-        tilt.add("geom", type="box", size=[0.04, 0.1, 0.035], mass=1.0, rgba=[0.3, 0.3, 0.32, 1], **NO_CONTACT)
+        tilt.add("geom", type="box", size=[0.04, 0.1, 0.035], mass=1.0, rgba=[0.3, 0.3, 0.32, 1])
         self._add_stereo_pair(tilt, "head", centre=[0.045, 0, 0], direction=[1, 0, 0], right=[0, -1, 0],
                               baseline_m=STEREO_BASELINE_M)
 

@@ -26,6 +26,7 @@ from comms import Delivery, Network
 from sim.robots.base import Robot
 from sim.run.faults import measurement_faults
 from sim.run.lanes import Lane, Priority
+from sim.run.series import Rows
 from sim.scenario import MappingConfig, Scenario, SlamConfig, slam_kwargs
 from sim.seeding import RandomStreams
 from sim.tools.marker_lut import load_tables
@@ -113,17 +114,17 @@ def body_camera_transform(model: mujoco.MjModel, data: mujoco.MjData, robot: Rob
 
 @dataclass
 class EstimateLog:
-    """The filter's online estimates, sampled on the ground-truth clock."""
+    """The filter's online estimates, sampled on the ground-truth clock (rows: :class:`sim.run.series.Rows`)."""
 
-    t: list[float] = field(default_factory=list)
-    pose_first_frame: list[np.ndarray] = field(default_factory=list)  # 4x4, switches chained
-    frame_index: list[int] = field(default_factory=list)
-    observable: list[np.ndarray] = field(default_factory=list)  # [roll, pitch, v_body] estimate
-    observable_cov: list[np.ndarray] = field(default_factory=list)  # 5x5
-    observable_true: list[np.ndarray] = field(default_factory=list)
-    position_std: list[np.ndarray] = field(default_factory=list)  # (3,) in the current local frame
-    bias: list[np.ndarray] = field(default_factory=list)  # [b_a, b_w] estimate
-    bias_true: list[np.ndarray] = field(default_factory=list)
+    t: Rows = field(default_factory=Rows)
+    pose_first_frame: Rows = field(default_factory=Rows)  # 4x4, switches chained
+    frame_index: Rows = field(default_factory=lambda: Rows(dtype=np.int64))
+    observable: Rows = field(default_factory=Rows)  # [roll, pitch, v_body] estimate
+    observable_cov: Rows = field(default_factory=Rows)  # 5x5
+    observable_true: Rows = field(default_factory=Rows)
+    position_std: Rows = field(default_factory=Rows)  # (3,) in the current local frame
+    bias: Rows = field(default_factory=Rows)  # [b_a, b_w] estimate
+    bias_true: Rows = field(default_factory=Rows)
 
 
 @dataclass
@@ -131,9 +132,9 @@ class SlamLog:
     """The graph's online estimates (thesis ch. 8: what the robot believed at each moment,
     never re-optimised afterwards), sampled on the ground-truth clock."""
 
-    t: list[float] = field(default_factory=list)
-    pose: list[np.ndarray] = field(default_factory=list)  # 4x4 in the robot's map (first submap origin)
-    beliefs: dict[str, list[tuple[float, float, np.ndarray]]] = field(default_factory=dict)  # peer -> (t, t of the estimate, pose in this map)
+    t: Rows = field(default_factory=Rows)
+    pose: Rows = field(default_factory=Rows)  # 4x4 in the robot's map (first submap origin)
+    beliefs: dict[str, Rows] = field(default_factory=dict)  # peer -> rows [t, t of the estimate, 16 entries of the pose in this map]
 
 
 class OnboardStack:
@@ -384,4 +385,5 @@ class OnboardStack:
         for peer in self.agent.peers:
             belief = self.agent.belief(peer)
             if belief is not None:
-                slog.beliefs.setdefault(peer, []).append((now, *belief))
+                t_estimate, pose = belief
+                slog.beliefs.setdefault(peer, Rows(64)).append(np.concatenate([[now, t_estimate], pose.ravel()]))

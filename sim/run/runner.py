@@ -32,8 +32,10 @@ from sim.evaluation.image_classification import ImageCells
 from sim.robots import make_robot
 from sim.robots.base import Robot
 from sim.run.lanes import ComputeModel, Device, Lane, Priority
+from sim.run.memory import MemoryTrace
 from sim.run.onboard import OnboardStack, body_camera_transform, calibration
 from sim.run.recording import Recorder
+from sim.run.series import LogHistogram, Rows
 from sim.scenario import Scenario
 from sim.seeding import RandomStreams
 from sim.world.calibration_errors import believed_body_camera, draw_calibration_errors, perturb_cameras
@@ -63,14 +65,19 @@ def _labels() -> list[str]:
 DEPTH_BIN_LABELS = _labels()
 
 
-@dataclass
-class DepthErrorAccumulator:
-    """Relative and absolute stereo depth error against rendered ground truth, per range bin."""
+REL_ERROR_RANGE = (1e-5, 100.0)  # relative depth error histogram bounds
+ABS_ERROR_RANGE_M = (1e-5, 1000.0)
 
-    relative: dict[str, list[np.ndarray]] = field(default_factory=lambda: defaultdict(list))
-    absolute: dict[str, list[np.ndarray]] = field(default_factory=lambda: defaultdict(list))
-    truth_pixels: dict[str, int] = field(default_factory=lambda: defaultdict(int))
-    frames: int = 0
+
+class DepthErrorAccumulator:
+    """Relative and absolute stereo depth error against rendered ground truth, per range bin, as
+    :class:`sim.run.series.LogHistogram` counts: its memory stays the same however many images a run scores."""
+
+    def __init__(self):
+        self.relative = {label: LogHistogram(*REL_ERROR_RANGE) for label in DEPTH_BIN_LABELS}
+        self.absolute = {label: LogHistogram(*ABS_ERROR_RANGE_M) for label in DEPTH_BIN_LABELS}
+        self.truth_pixels: dict[str, int] = dict.fromkeys(DEPTH_BIN_LABELS, 0)
+        self.frames = 0
 
     def add(self, estimate: np.ndarray, truth: np.ndarray) -> None:
         est = estimate[::DEPTH_SAMPLE_STRIDE, ::DEPTH_SAMPLE_STRIDE]
@@ -83,28 +90,26 @@ class DepthErrorAccumulator:
             self.truth_pixels[label] += int(np.count_nonzero(seen & in_bin))
             sel = valid & in_bin
             if np.any(sel):
-                err = est[sel] - gt[sel]
-                self.absolute[label].append(np.abs(err).astype(np.float32))
-                self.relative[label].append((np.abs(err) / gt[sel]).astype(np.float32))
+                err = np.abs(est[sel] - gt[sel])
+                self.absolute[label].add(err)
+                self.relative[label].add(err / gt[sel])
 
     def summary(self, labels: tuple[str, ...]) -> dict:
         """Error statistics over the union of the range bins ``labels``."""
-        rel = [a for label in labels for a in self.relative[label]]
-        rel = np.concatenate(rel) if rel else np.zeros(0)
+        rel = LogHistogram.merged([self.relative[label] for label in labels])
         truth = sum(self.truth_pixels[label] for label in labels)
         return {
             "range": f"{labels[0].split('-')[0]}-{labels[-1].split('-')[1]}",
             "frames": self.frames,
-            "median_rel_error": float(np.median(rel)) if rel.size else None,
-            "p95_rel_error": float(np.percentile(rel, 95)) if rel.size else None,
-            "valid_share": float(rel.size / truth) if truth else 0.0,
+            "median_rel_error": rel.quantile(0.5),
+            "p95_rel_error": rel.quantile(0.95),
+            "valid_share": float(rel.n / truth) if truth else 0.0,
         }
 
     def rows(self, robot: str, rig: str) -> list[dict]:
         out = []
         for label in DEPTH_BIN_LABELS:
-            rel = np.concatenate(self.relative[label]) if self.relative[label] else np.zeros(0)
-            ab = np.concatenate(self.absolute[label]) if self.absolute[label] else np.zeros(0)
+            rel, ab = self.relative[label], self.absolute[label]
             truth = self.truth_pixels[label]
             out.append(
                 {
@@ -112,12 +117,12 @@ class DepthErrorAccumulator:
                     "rig": rig,
                     "range": label,
                     "frames": self.frames,
-                    "pixels_scored": int(rel.size),
-                    "valid_share": float(rel.size / truth) if truth else 0.0,
-                    "median_rel_error": float(np.median(rel)) if rel.size else None,
-                    "p95_rel_error": float(np.percentile(rel, 95)) if rel.size else None,
-                    "median_abs_error_m": float(np.median(ab)) if ab.size else None,
-                    "p95_abs_error_m": float(np.percentile(ab, 95)) if ab.size else None,
+                    "pixels_scored": rel.n,
+                    "valid_share": float(rel.n / truth) if truth else 0.0,
+                    "median_rel_error": rel.quantile(0.5),
+                    "p95_rel_error": rel.quantile(0.95),
+                    "median_abs_error_m": ab.quantile(0.5),
+                    "p95_abs_error_m": ab.quantile(0.95),
                 }
             )
         return out
@@ -125,16 +130,16 @@ class DepthErrorAccumulator:
 
 @dataclass
 class RobotLog:
-    """What one robot's run produced, in simulated time."""
+    """What one robot's run produced, in simulated time (rows: :class:`sim.run.series.Rows`)."""
 
-    gt_t: list[float] = field(default_factory=list)
-    gt_pose: list[np.ndarray] = field(default_factory=list)  # (7,) x y z qw qx qy qz, world frame
-    imu_t: list[float] = field(default_factory=list)
-    imu: list[np.ndarray] = field(default_factory=list)  # (6,) accel, gyro (measured)
-    imu_true: list[np.ndarray] = field(default_factory=list)  # (6,) specific force, angular rate (truth)
-    imu_bias: list[np.ndarray] = field(default_factory=list)  # (6,) true accel and gyro biases
-    odom_t: list[float] = field(default_factory=list)
-    odom: list[np.ndarray] = field(default_factory=list)  # (3,) v_x, v_y, yaw rate (measured)
+    gt_t: Rows = field(default_factory=Rows)
+    gt_pose: Rows = field(default_factory=Rows)  # (7,) x y z qw qx qy qz, world frame
+    imu_t: Rows = field(default_factory=Rows)
+    imu: Rows = field(default_factory=Rows)  # (6,) accel, gyro (measured)
+    imu_true: Rows = field(default_factory=Rows)  # (6,) specific force, angular rate (truth)
+    imu_bias: Rows = field(default_factory=Rows)  # (6,) true accel and gyro biases
+    odom_t: Rows = field(default_factory=Rows)
+    odom: Rows = field(default_factory=Rows)  # (3,) v_x, v_y, yaw rate (measured)
     frames: int = 0
     depth_error: dict[str, DepthErrorAccumulator] = field(default_factory=lambda: defaultdict(DepthErrorAccumulator))
     exposure: dict[str, list[tuple[float, float, float]]] = field(default_factory=lambda: defaultdict(list))  # per rig: s, gain, saturated share
@@ -182,6 +187,7 @@ class Run:
         self.scenario = scenario
         self.streams = RandomStreams(scenario.seed)
         self.timers = Timers()
+        self.memory = MemoryTrace()
         self.recorder = recorder
         self.env = simpy.Environment()
         self.sim_time = 0.0
@@ -372,6 +378,7 @@ class Run:
             self.env.run(until=process)
         finally:
             self.sim_time = self.env.now
+            self.memory.poll(self.sim_time, force=True)
             if self.mission_s is None:  # the run failed before its routes ended
                 self.mission_s = self.sim_time
             self.wall_s = time.perf_counter() - start + self.timers.seconds["setup"]
@@ -411,6 +418,7 @@ class Run:
             tick += 1
             yield self.env.timeout(self.tick_s)
             self._sample(tick, gt_every)
+            self.memory.poll(self.env.now)
             if progress is not None and tick % progress_every == 0:
                 progress(self.env.now, self.statuses())
             if all(r.robot.finished for r in self.robots.values()):
@@ -440,6 +448,7 @@ class Run:
                 self.drain_end = "duration_s" if until >= self.scenario.duration_s - 1e-9 else "drain_s"
                 break
             yield self.env.timeout(min(DRAIN_POLL_S, until - self.env.now))
+            self.memory.poll(self.env.now)
             if progress is not None and self.env.now >= next_progress - 1e-9:
                 next_progress += progress_every_s
                 progress(self.env.now, self.statuses())
