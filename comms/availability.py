@@ -8,7 +8,8 @@ A link is up while nothing blocks it. Blocking reasons:
 - ``window``: outside the link's ``windows`` (e.g. the SpaceBotCamp uplink, blocked
   except in short checkpoints);
 - ``range``: the nodes are farther apart than ``range_m``;
-- ``line_of_sight``: the caller's line-of-sight test fails (a ray against the terrain).
+- ``line_of_sight``: the caller's line-of-sight test fails (a ray against the terrain);
+- ``fault``: a node's radio failed (:meth:`Availability.node_fault`, the simulator's injected faults).
 
 Range and line of sight come from callbacks the simulator supplies (positions of the
 nodes; a ray test between two nodes), evaluated at construction and then every
@@ -126,6 +127,22 @@ class Availability:
             self._emit({link for link in members if link.block("outage", 1)})
         yield self.env.timeout(end - self.env.now)
         self._emit({link for link in members if link.block("outage", -1)})
+
+    def node_fault(self, node: str, start: float, end: float | None) -> None:
+        """Every link to and from ``node`` is down (reason ``fault``: its radio failed) from ``start`` until
+        ``end`` (None: for good)."""
+        if node not in self.nodes:
+            raise CommsError(f"no node named {node!r}; nodes: {list(self.nodes)}")
+        members = [link for (a, b), link in self.links.items() if node in (a, b)]
+        self.env.process(self._fault_process(start, end, members))
+
+    def _fault_process(self, start: float, end: float | None, members: list[Link]):
+        if start > self.env.now:
+            yield self.env.timeout(start - self.env.now)
+        self._emit({link for link in members if link.block("fault", 1)})
+        if end is not None:
+            yield self.env.timeout(max(0.0, end - self.env.now))
+            self._emit({link for link in members if link.block("fault", -1)})
 
     def _random_outage_process(self, spec: RandomOutageConfig, members: list[Link], rng: np.random.Generator):
         if spec.start_s > self.env.now:

@@ -33,11 +33,13 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    GetCoreSchemaHandler,
     ValidationError,
     field_validator,
     model_serializer,
     model_validator,
 )
+from pydantic_core import CoreSchema
 
 from comms.errors import CommsError
 
@@ -47,10 +49,41 @@ LINK_KEY = re.compile(r"^\s*(\*|[A-Za-z][A-Za-z0-9_]{0,31})\s*(<->|->)\s*(\*|[A-
 NonNegFloat = Annotated[float, Field(ge=0)]
 PositiveFloat = Annotated[float, Field(gt=0)]
 Probability = Annotated[float, Field(ge=0, le=1)]
+# Plausibility bounds; ``why`` (in the JSON schema) is what an error message adds.
+Delay = Annotated[float, Field(ge=0, le=3600, json_schema_extra={"why": "a one-way delay of at most an hour: Earth to Mars is 22 min at most"})]
+Bandwidth = Annotated[float, Field(ge=1, le=1e12, json_schema_extra={"why": "1 bit/s (slower is no link) to 1 Tbit/s (beyond any radio)"})]
+Period = Annotated[
+    float, Field(ge=0.01, json_schema_extra={"why": "at least 10 ms (a control tick is 5 ms), so that the network's processes cannot flood the run"})
+]
+OutageMean = Annotated[
+    float, Field(ge=0.1, json_schema_extra={"why": "at least 0.1 s (shorter cuts are fragment loss, `loss:`), so that outages cannot flood the run"})
+]
+
+
+def _strict_numbers(schema: Any) -> None:
+    """Make every number and boolean in a pydantic core ``schema`` strict: no ``true`` taken
+    as 1, no ``"3"`` as 3, no 2.5 rounded into an integer (floats still take integers)."""
+    if isinstance(schema, dict):
+        if schema.get("type") in ("float", "int", "bool"):
+            schema["strict"] = True
+        for value in schema.values():
+            _strict_numbers(value)
+    elif isinstance(schema, list):
+        for value in schema:
+            _strict_numbers(value)
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Base of every model here: unknown keys, NaN, infinities and numbers of the wrong
+    type are errors (as in the scenario schema, which comms does not import)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    @classmethod
+    def __get_pydantic_core_schema__(cls, source: type[BaseModel], handler: GetCoreSchemaHandler) -> CoreSchema:
+        schema = handler(source)
+        _strict_numbers(schema)
+        return schema
 
 
 def _check_window(value: tuple[float, float]) -> tuple[float, float]:
@@ -157,9 +190,9 @@ class LinkConfig(_Strict):
     propagate; a link never reorders (an arrival waits for the one before it)."""
 
     enabled: bool = True
-    latency_s: NonNegFloat = 0.002
-    jitter_s: NonNegFloat = 0.0
-    bandwidth_bps: PositiveFloat = 20e6
+    latency_s: Delay = 0.002
+    jitter_s: Delay = 0.0
+    bandwidth_bps: Bandwidth = 20e6
     mtu_bytes: int = Field(1400, ge=16, le=1_000_000)
     loss: LossConfig = LossConfig()
     range_m: PositiveFloat | None = Field(None, description="up only while the nodes are this close (None: any distance)")
@@ -191,9 +224,9 @@ class LinkOverride(_OnlySet):
     """Any subset of :class:`LinkConfig`'s fields for the links a key names."""
 
     enabled: bool | None = None
-    latency_s: NonNegFloat | None = None
-    jitter_s: NonNegFloat | None = None
-    bandwidth_bps: PositiveFloat | None = None
+    latency_s: Delay | None = None
+    jitter_s: Delay | None = None
+    bandwidth_bps: Bandwidth | None = None
     mtu_bytes: int | None = Field(None, ge=16, le=1_000_000)
     loss: LossConfig | None = None
     range_m: PositiveFloat | None = None
@@ -257,8 +290,8 @@ class RandomOutageConfig(_Strict):
     named links (same scoping as :class:`OutageConfig`) down together for an
     exponential time with mean ``mean_down_s``, from ``start_s`` on. Seeded."""
 
-    mean_up_s: PositiveFloat
-    mean_down_s: PositiveFloat
+    mean_up_s: OutageMean
+    mean_down_s: OutageMean
     start_s: NonNegFloat = 0.0
     nodes: list[Annotated[str, Field(pattern=NODE_PATTERN)]] = []
     links: list[str] = []
@@ -365,8 +398,8 @@ class CommsConfig(_Strict):
     relays: list[Annotated[str, Field(pattern=NODE_PATTERN)]] = Field(
         [], description="nodes that forward messages for others over links that are up"
     )
-    poll_interval_s: PositiveFloat = Field(0.5, description="how often range and line of sight are evaluated")
-    stats_interval_s: PositiveFloat = Field(1.0, description="sampling period of the link time series")
+    poll_interval_s: Period = Field(0.5, description="how often range and line of sight are evaluated")
+    stats_interval_s: Period = Field(1.0, description="sampling period of the link time series")
 
     @model_validator(mode="before")
     @classmethod

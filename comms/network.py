@@ -202,6 +202,11 @@ class Network:
         except KeyError:
             raise CommsError(f"no link {src}->{dst}; nodes: {list(self.nodes)}") from None
 
+    def radio_fault(self, node: str, start_s: float, end_s: float | None = None) -> None:
+        """``node``'s radio fails from ``start_s`` until ``end_s`` (None: for good): no link to or from it is up,
+        and messages to it are held or dropped as in an outage."""
+        self.availability.node_fault(node, start_s, end_s)
+
     def is_up(self, src: str, dst: str) -> bool:
         return self.link(src, dst).up
 

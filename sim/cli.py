@@ -10,6 +10,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.traceback import Traceback
 from typer.core import TyperCommand
@@ -30,9 +31,9 @@ def _load(scenario: Path, overrides: list[str]):
     try:
         return load_scenario(scenario, overrides)
     except ScenarioError as exc:
-        err_console.print(f"[bold red]{exc.source}: invalid scenario[/]")
-        for line in exc.problems:
-            err_console.print(f"  [red]-[/] {line}")
+        err_console.print(f"[bold red]{escape(exc.source)}: invalid scenario[/]")
+        for line in exc.problems:  # escaped: a problem quotes the user's text, whose [brackets] are no markup
+            err_console.print(f"  [red]-[/] {escape(line)}")
         raise typer.Exit(2) from None
 
 
@@ -127,16 +128,16 @@ def _load_batch(batch_file: Path, overrides: list[str], seeds: int | None):
     try:
         batch = load_batch(batch_file, overrides, seeds)
     except BatchError as exc:
-        err_console.print(f"[bold red]{exc.source}: invalid batch file[/]")
+        err_console.print(f"[bold red]{escape(exc.source)}: invalid batch file[/]")
         for line in exc.problems:
-            err_console.print(f"  [red]-[/] {line}")
+            err_console.print(f"  [red]-[/] {escape(line)}")
         raise typer.Exit(2) from None
     failing = check(batch)
     for problem in failing:
         err_console.print(f"[bold red]variant {problem.variant}: invalid scenario[/]" + (f" (robots {problem.robots})" if problem.robots else ""))
         err_console.print(f"  overrides: {' '.join(problem.overrides)}", markup=False, highlight=False)
         for line in problem.problems:
-            err_console.print(f"  [red]-[/] {line}")
+            err_console.print(f"  [red]-[/] {escape(line)}")
     if failing:
         err_console.print(f"[bold red]{len(failing)} of {len(batch.variants)} variants invalid; nothing was run[/]")
         raise typer.Exit(2)

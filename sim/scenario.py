@@ -3,7 +3,9 @@
 Every model forbids unknown keys. :func:`load_scenario` turns pydantic's errors into
 :class:`ScenarioError` whose lines name the dotted key path, the offending value and
 what is allowed. ``--set dotted.key=value`` overrides are applied to the raw YAML
-before validation, so they are checked like everything else.
+before validation, so they are checked like everything else. Files and override values
+are read by :func:`sim.safe_yaml.load` (safe, bounded, no duplicate keys); numbers are
+strict and finite, and plausibility bounds say why (``json_schema_extra={"why": ...}``).
 
 Robot presets follow thesis 7.1 (LRU narrow stereo 50.6 deg, b = 9 cm; wide-angle
 112.8 deg; ARDEA two stereo pairs b = 12 cm tilted +-60 deg). Default lane stage costs
@@ -13,26 +15,33 @@ come from the on-board measurements of thesis 8.4.
 from __future__ import annotations
 
 import inspect
+import itertools
 import math
+import typing
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    GetCoreSchemaHandler,
     ValidationError,
     field_validator,
     model_validator,
 )
+from pydantic_core import CoreSchema
 
 from comms import CommsConfig, CommsError
+from sim import safe_yaml
 from sim.robots import PRESETS
-from slam.agent import AgentParams
+from sim.world.lander import LANDER_PAD_RADIUS, LANDER_RADIUS
+from slam.agent import MESSAGE_KINDS, AgentParams
 from slam.filter import FilterParams
 from slam.graph import GraphParams
 from slam.health import HealthParams
@@ -48,6 +57,19 @@ NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
 XY = tuple[float, float]
+# Plausibility bounds; ``why`` (in the JSON schema) is what an error message adds.
+RockDiameter = Annotated[float, Field(gt=0, le=3, json_schema_extra={"why": "larger relief is craters and ridges; every rock fits on 5 m"})]
+Altitude = Annotated[float, Field(gt=0, le=100, json_schema_extra={"why": "the hexacopter's stereo sees the ground to about 10 m"})]
+
+#: Heights per side of the terrain grid: 4097^2 float64 heights are 134 MB, and generating
+#: them holds several such arrays; MuJoCo's hfield and the renderer get slow long before.
+MAX_GRID_POINTS = 4097
+#: Samples of the link time series (``duration_s / comms.stats_interval_s``): each keeps
+#: about 50 bytes per link, so 200,000 are 120 MB with four nodes (12 links).
+MAX_LINK_SAMPLES = 200_000
+#: Keep-clear discs along the routes (:meth:`Scenario.keep_clear`): the terrain generator
+#: tests every rock candidate against each of them.
+MAX_KEEP_CLEAR_DISCS = 10_000
 
 
 class ScenarioError(ValueError):
@@ -59,8 +81,30 @@ class ScenarioError(ValueError):
         super().__init__(f"{source}: invalid scenario\n  " + "\n  ".join(problems))
 
 
+def _strict_numbers(schema: Any) -> None:
+    """Make every number and boolean in a pydantic core ``schema`` strict: no ``true`` taken
+    as 1, no ``"3"`` as 3, no 2.5 rounded into an integer (floats still take integers)."""
+    if isinstance(schema, dict):
+        if schema.get("type") in ("float", "int", "bool"):
+            schema["strict"] = True
+        for value in schema.values():
+            _strict_numbers(value)
+    elif isinstance(schema, list):
+        for value in schema:
+            _strict_numbers(value)
+
+
 class StrictModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    """Base of every scenario section: unknown keys, NaN, infinities and numbers of the
+    wrong type are errors."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+    @classmethod
+    def __get_pydantic_core_schema__(cls, source: type[BaseModel], handler: GetCoreSchemaHandler) -> CoreSchema:
+        schema = handler(source)
+        _strict_numbers(schema)
+        return schema
 
 
 def _ordered_range(value: tuple[float, float], what: str) -> tuple[float, float]:
@@ -171,10 +215,13 @@ class RockConfig(StrictModel):
     N(>D) ~ D^-exponent, the usual model of planetary rock size-frequency."""
 
     count: int = Field(25, ge=0, le=2000)
-    diameter_m: tuple[PositiveFloat, PositiveFloat] = (0.15, 0.8)
+    diameter_m: tuple[RockDiameter, RockDiameter] = (0.15, 0.8)
     power_law_exponent: float = Field(2.5, gt=0, le=6)
-    clearance_m: NonNegFloat = Field(
-        2.0, description="keep rocks this far from robot starts, waypoints' straight legs and the lander"
+    clearance_m: float = Field(
+        2.0,
+        ge=0.1,
+        description="keep rocks this far from robot starts, waypoints' straight legs and the lander",
+        json_schema_extra={"why": "the legs are kept clear by discs every clearance_m along them: a tiny one makes millions"},
     )
 
     _range = field_validator("diameter_m")(lambda v: _ordered_range(v, "diameter_m"))
@@ -191,7 +238,9 @@ class TextureConfig(StrictModel):
     """Procedural regolith albedo: multi-octave noise from the seed."""
 
     size_px: int = Field(2048, ge=256, le=8192)
-    texel_m: PositiveFloat = Field(0.02, description="ground size of one texel")
+    texel_m: float = Field(
+        0.02, ge=0.001, le=1.0, description="ground size of one texel", json_schema_extra={"why": "cameras see no finer, SGBM matches no coarser"}
+    )
     contrast: float = Field(0.35, gt=0, le=1.0)
 
 
@@ -199,7 +248,9 @@ class TerrainConfig(StrictModel):
     preset: Literal["moon", "mars", "etna"] = "moon"
     size_m: float = Field(40.0, ge=5, le=500, description="side length of the square terrain")
     resolution_m: float = Field(0.1, ge=0.02, le=1.0, description="heightfield grid spacing")
-    roughness_m: NonNegFloat = Field(0.05, description="amplitude of fractal surface noise")
+    roughness_m: float = Field(
+        0.05, ge=0, le=2, description="amplitude of fractal surface noise", json_schema_extra={"why": "larger relief: craters, ridges, slope"}
+    )
     roughness_wavelength_m: PositiveFloat = 4.0
     craters: CraterConfig = CraterConfig()
     slope: SlopeConfig = SlopeConfig()
@@ -208,13 +259,46 @@ class TerrainConfig(StrictModel):
     lander: LanderConfig | None = None
     texture: TextureConfig = TextureConfig()
 
+    def grid_points(self) -> int:
+        """Heights per side of the terrain grid."""
+        return max(2, round(self.size_m / self.resolution_m)) + 1
+
+    def lander_keep_clear(self) -> list[tuple[XY, float]]:
+        """The disc ``(xy, radius)`` around the lander that rocks and crater centres keep out of (none without a lander)."""
+        return [] if self.lander is None else [(self.lander.xy, LANDER_RADIUS + self.rocks.clearance_m)]
+
+    @model_validator(mode="after")
+    def _check_fits(self) -> TerrainConfig:
+        n = self.grid_points()
+        if n > MAX_GRID_POINTS:
+            raise ValueError(
+                f"size_m={self.size_m:g} at resolution_m={self.resolution_m:g} is {n - 1} cells per side: the heightfield "
+                f"would hold {n}x{n} heights ({n * n * 8 / 1e9:.1f} GB, several times that while it is generated); at most "
+                f"{MAX_GRID_POINTS - 1} cells per side: raise resolution_m to >= {self.size_m / (MAX_GRID_POINTS - 1):.3g}"
+            )
+        if self.roughness_wavelength_m < 2 * self.resolution_m:
+            raise ValueError(
+                f"roughness_wavelength_m={self.roughness_wavelength_m:g} is shorter than two grid cells "
+                f"(2 x resolution_m = {2 * self.resolution_m:g} m): the grid cannot hold it"
+            )
+        if self.lander is not None and max(map(abs, self.lander.xy)) > self.size_m / 2 - LANDER_PAD_RADIUS:
+            raise ValueError(
+                f"lander.xy={list(self.lander.xy)} must lie within {self.size_m / 2 - LANDER_PAD_RADIUS:g} m "
+                f"of the centre in x and y (its pad is {LANDER_PAD_RADIUS:g} m in radius, size_m={self.size_m:g})"
+            )
+        return self
+
 
 # --------------------------------------------------------------------------- robots
 
 
 def _per_preset(attribute: str) -> str:
-    """A robot class attribute for every preset, e.g. ``lru 4, lru_wide 4, ardea 2``."""
-    return ", ".join(f"{name} {getattr(robot, attribute)}" for name, robot in PRESETS.items())
+    """A robot class attribute for every preset, e.g. ``lru 4, lru_wide 4, ardea 2`` (tuples as ``a/b``, empty: none)."""
+
+    def shown(value: Any) -> str:
+        return "/".join(map(str, value)) or "none" if isinstance(value, tuple) else str(value)
+
+    return ", ".join(f"{name} {shown(getattr(robot, attribute))}" for name, robot in PRESETS.items())
 
 
 class CameraConfig(StrictModel):
@@ -230,6 +314,12 @@ class CameraConfig(StrictModel):
     )
     znear_m: PositiveFloat = 0.05
     zfar_m: PositiveFloat = 60.0
+
+    @model_validator(mode="after")
+    def _check_clipping(self) -> CameraConfig:
+        if self.znear_m >= self.zfar_m:
+            raise ValueError(f"znear_m ({self.znear_m:g}) must be less than zfar_m ({self.zfar_m:g})")
+        return self
 
 
 class ImuConfig(StrictModel):
@@ -247,7 +337,7 @@ class WheelOdometryConfig(StrictModel):
 
 class WaypointConfig(StrictModel):
     xy: XY
-    altitude_m: PositiveFloat | None = Field(
+    altitude_m: Altitude | None = Field(
         None, description="hexacopter only: height above the terrain under the waypoint"
     )
     scan: bool = Field(False, description="360 deg scan on arrival (pan head on rovers, yaw on ardea)")
@@ -265,7 +355,7 @@ class RouteConfig(StrictModel):
         None, ge=0, le=90, description="rover head pan amplitude while driving, +- around straight ahead (default: the preset's; 0: none)"
     )
     head_sweep_period_s: PositiveFloat | None = Field(None, description="period of the rover head's sweep while driving (default: the preset's)")
-    cruise_altitude_m: PositiveFloat = Field(3.0, description="hexacopter default height above terrain")
+    cruise_altitude_m: Altitude = Field(3.0, description="hexacopter default height above terrain")
     land: bool = Field(False, description="hexacopter lands after the last waypoint")
     stuck_timeout_s: PositiveFloat = Field(15.0, description="no progress for this long counts as stuck")
     start_delay_s: NonNegFloat = Field(
@@ -330,8 +420,14 @@ class RobotConfig(StrictModel):
 
 
 class PhysicsConfig(StrictModel):
-    timestep_s: float = Field(0.001, gt=0, le=0.01)
-    control_rate_hz: float = Field(200.0, gt=0, le=1000, description="controllers and IMU sampling tick")
+    timestep_s: float = Field(0.001, ge=1e-4, le=0.01, json_schema_extra={"why": "MuJoCo steps the robots stably in 0.1-10 ms; finer only costs"})
+    control_rate_hz: float = Field(
+        200.0,
+        ge=10,
+        le=1000,
+        description="controllers and IMU sampling tick",
+        json_schema_extra={"why": "the controllers are tuned for 200 Hz; a tick holds at most 1000 physics steps"},
+    )
 
 
 class StageCosts(StrictModel):
@@ -779,14 +875,86 @@ class WrongMatchFault(MeasurementFault):
     sigma_deg: PositiveFloat = Field(1.0, description="the wrong closure's rotation sigma")
 
 
-FaultConfig = Annotated[WrongDetectionFault | WrongMatchFault, Field(discriminator="type")]
+class DiesFault(FaultEntry):
+    """The robot fails for good at ``start_s``: its motors stop (a hexacopter in flight falls), its sensors,
+    computer and radio go silent. The rest of the team keeps what it received from it."""
+
+    type: Literal["dies"]
+
+    @model_validator(mode="after")
+    def _for_good(self) -> DiesFault:
+        if self.end_s is not None:
+            raise ValueError("end_s: a robot that dies stays dead (leave end_s out)")
+        return self
+
+
+class CameraDarkFault(FaultEntry):
+    """The cameras see nothing (no light reaches the sensor: a lens cap, a dead illumination, a cable): the
+    images carry only the sensor's noise."""
+
+    type: Literal["camera_dark"]
+    rigs: list[str] | None = Field(None, min_length=1, description="the stereo rigs that go dark (default: all of the robot's)")
+
+
+class ImuStuckFault(FaultEntry):
+    """The IMU repeats its last sample (a frozen driver or bus)."""
+
+    type: Literal["imu_stuck"]
+
+
+class ImuSaturationFault(FaultEntry):
+    """The IMU's range shrinks (a wrong range setting, an overload): each axis clips at the limits. The
+    defaults are below lunar gravity (1.62 m/s^2) and a rover's turn rate, so the vertical axis and turns clip."""
+
+    type: Literal["imu_saturation"]
+    accel_limit_mps2: PositiveFloat = Field(1.0, description="each accelerometer axis clips at +- this")
+    gyro_limit_dps: PositiveFloat = Field(5.0, description="each gyro axis clips at +- this")
+
+
+class EncoderFailureFault(FaultEntry):
+    """One wheel's encoder reads zero speed (a broken encoder or cable); wheel odometry goes on with it."""
+
+    type: Literal["encoder_failure"]
+    wheel: str = Field("fl", description=f"the wheel whose encoder fails; wheels per preset: {_per_preset('wheel_names')}")
+
+
+class RadioSilentFault(FaultEntry):
+    """The robot's radio neither sends nor receives (every link to and from it is down)."""
+
+    type: Literal["radio_silent"]
+
+
+class ComputeSlowdownFault(FaultEntry):
+    """The on-board computer slows down (thermal throttling, a runaway process): every job's compute time
+    is multiplied by ``factor``."""
+
+    type: Literal["compute_slowdown"]
+    factor: float = Field(4.0, ge=1, le=1000, description="compute time multiplier")
+
+
+FaultConfig = Annotated[
+    WrongDetectionFault
+    | WrongMatchFault
+    | DiesFault
+    | CameraDarkFault
+    | ImuStuckFault
+    | ImuSaturationFault
+    | EncoderFailureFault
+    | RadioSilentFault
+    | ComputeSlowdownFault,
+    Field(discriminator="type"),
+]
+#: Short forms of a fault entry's keys: ``{kind: dies, robot: lru2, at_s: 10}``.
+FAULT_SHORT_KEYS = {"kind": "type", "at_s": "start_s"}
 
 
 class Scenario(StrictModel):
     name: str = Field(..., pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
     seed: int = Field(0, ge=0)
-    duration_s: PositiveFloat
+    duration_s: float = Field(
+        ..., gt=0, le=2 * 86400, json_schema_extra={"why": "at most two days: runs go at about real time, the thesis's longest took an hour"}
+    )
     drain_s: NonNegFloat = Field(
         120.0,
         description="once every route is done: the robots rest, sensors off, for up to this long (within duration_s) while "
@@ -800,7 +968,11 @@ class Scenario(StrictModel):
     comms: CommsConfig = CommsConfig()
     slam: SlamConfig = SlamConfig()
     realism: RealismConfig = RealismConfig()
-    faults: list[FaultConfig] = Field([], description="injected failures, each a typed entry (`type: wrong_detection | wrong_match`)")
+    faults: list[FaultConfig] = Field(
+        [],
+        description="injected failures, each a typed entry (`type:` wrong_detection, wrong_match, dies, camera_dark, imu_stuck, "
+        "imu_saturation, encoder_failure, radio_silent, compute_slowdown) with `robots` and a window `start_s`, `end_s`",
+    )
 
     def network_nodes(self) -> list[str]:
         """Nodes of the network: the robots, the lander if there is one, and what the
@@ -809,6 +981,33 @@ class Scenario(StrictModel):
         if self.terrain.lander is not None:
             nodes.append("lander")
         return nodes + self.comms.extra_nodes()
+
+    def keep_clear(self) -> list[tuple[XY, float]]:
+        """Discs ``(xy, radius)`` that rocks and crater centres keep out of: ``terrain.rocks.clearance_m``
+        around every robot start and along the straight legs between its waypoints (the
+        terrain adds the lander's, :meth:`TerrainConfig.lander_keep_clear`)."""
+        clear = self.terrain.rocks.clearance_m
+        discs = []
+        for cfg in self.robots:
+            discs.append((cfg.start.xy, clear))
+            for (x0, y0), (x1, y1), n in self._legs(cfg):
+                discs += [((x0 + (x1 - x0) * i / n, y0 + (y1 - y0) * i / n), clear) for i in range(n + 1)]
+        return discs
+
+    def _legs(self, robot: RobotConfig) -> list[tuple[XY, XY, int]]:
+        """The straight legs of a robot's route, each with the number of steps of at most
+        ``clearance_m`` that :meth:`keep_clear` divides it into."""
+        clear = self.terrain.rocks.clearance_m
+        points = [robot.start.xy] + [w.xy for w in robot.route.waypoints]
+        return [(a, b, max(1, int(math.hypot(b[0] - a[0], b[1] - a[1]) / clear))) for a, b in itertools.pairwise(points)]
+
+    @field_validator("comms")
+    @classmethod
+    def _check_kinds(cls, comms: CommsConfig) -> CommsConfig:
+        unknown = sorted(set(comms.kinds) - set(MESSAGE_KINDS))
+        if unknown:
+            raise ValueError(f"kinds: unknown message kind {', '.join(map(repr, unknown))}; the robots send: {', '.join(MESSAGE_KINDS)}")
+        return comms
 
     @model_validator(mode="after")
     def _check_team(self) -> Scenario:
@@ -851,12 +1050,106 @@ class Scenario(StrictModel):
         return self
 
     @model_validator(mode="after")
+    def _check_run(self) -> Scenario:
+        """What the run would otherwise find at set-up: robots placed on the lander, a VO rig
+        a robot lacks, a link time series or keep-clear discs too large, no room for rocks."""
+        lander = self.terrain.lander
+        for robot in self.robots:
+            preset = PRESETS[robot.preset]
+            rig = self.slam.vo_rig or preset.default_vo_rig
+            if rig not in preset.stereo_rig_names:
+                raise ValueError(
+                    f"slam.vo_rig: {rig!r} is not a stereo rig of robot {robot.name} (preset {robot.preset}: {', '.join(preset.stereo_rig_names)})"
+                )
+            if lander is None:
+                continue
+            keep = LANDER_RADIUS + preset.body_radius_m
+            points = [("start", robot.start.xy)] + [(f"waypoint {i}", w.xy) for i, w in enumerate(robot.route.waypoints)]
+            for what, (x, y) in points:
+                if math.hypot(x - lander.xy[0], y - lander.xy[1]) < keep:
+                    raise ValueError(
+                        f"robot {robot.name}: {what} {[x, y]} lies on the lander at {list(lander.xy)} (keep {keep:.2f} m from its centre: "
+                        f"its footprint is {LANDER_RADIUS:g} m in radius, preset {robot.preset} reaches {preset.body_radius_m:.2g} m)"
+                    )
+        samples = self.duration_s / self.comms.stats_interval_s
+        if samples > MAX_LINK_SAMPLES:
+            raise ValueError(
+                f"duration_s / comms.stats_interval_s is {samples:.0f} samples of the link time series, at most {MAX_LINK_SAMPLES} "
+                f"(memory): raise comms.stats_interval_s to >= {self.duration_s / MAX_LINK_SAMPLES:.3g}"
+            )
+        clear = self.terrain.rocks.clearance_m
+        discs = len(self.robots) + sum(n + 1 for robot in self.robots for _, _, n in self._legs(robot))
+        if discs > MAX_KEEP_CLEAR_DISCS:
+            raise ValueError(
+                f"terrain.rocks.clearance_m={clear:g}: the routes need {discs} keep-clear discs (one every clearance_m along each leg), "
+                f"at most {MAX_KEEP_CLEAR_DISCS}: raise clearance_m or shorten the routes"
+            )
+        if (self.terrain.rocks.count or self.terrain.craters.count) and not self._room_outside(self.keep_clear() + self.terrain.lander_keep_clear()):
+            raise ValueError(
+                f"terrain.rocks.clearance_m={clear:g}: no room for rocks or craters: the keep-clear discs ({clear:g} m around the robot "
+                f"starts and route legs, {LANDER_RADIUS + clear:g} m around a lander) cover the whole terrain; lower clearance_m, "
+                "or set rocks.count and craters.count to 0"
+            )
+        return self
+
+    def _room_outside(self, discs: list[tuple[XY, float]], samples: int = 64) -> bool:
+        """Whether some point of the terrain may lie outside every disc: true for a grid point
+        closer to the free region than half a grid diagonal, so no room is ever missed."""
+        half = self.terrain.size_m / 2
+        grid = np.linspace(-half, half, samples)
+        slack = (grid[1] - grid[0]) / math.sqrt(2)
+        points = np.stack(np.meshgrid(grid, grid), axis=-1).reshape(-1, 2)
+        free = np.ones(len(points), bool)
+        for start in range(0, len(discs), 256):
+            chunk = discs[start : start + 256]
+            centres = np.array([xy for xy, _ in chunk], float)
+            radii = np.array([r for _, r in chunk], float)
+            dist = np.hypot(points[:, None, 0] - centres[None, :, 0], points[:, None, 1] - centres[None, :, 1])
+            free &= (dist > radii - slack).all(axis=1)
+        return bool(free.any())
+
+    @field_validator("faults", mode="before")
+    @classmethod
+    def _fault_short_forms(cls, value: Any) -> Any:
+        """Accept ``kind`` for ``type``, ``at_s`` for ``start_s`` and ``robot: name`` for ``robots: [name]``."""
+        if not isinstance(value, list):
+            return value
+        out = []
+        for item in value:
+            if isinstance(item, dict):
+                item = dict(item)
+                for short, key in [*FAULT_SHORT_KEYS.items(), ("robot", "robots")]:
+                    if short in item:
+                        if key in item:
+                            raise ValueError(f"give `{key}` or its short form `{short}`, not both")
+                        short_value = item.pop(short)
+                        item[key] = [short_value] if short == "robot" else short_value
+            out.append(item)
+        return out
+
+    @model_validator(mode="after")
     def _check_faults(self) -> Scenario:
         names = [r.name for r in self.robots]
         for i, fault in enumerate(self.faults):
             unknown = [n for n in fault.robots or [] if n not in names]
             if unknown:
                 raise ValueError(f"faults.{i} ({fault.type}): robots: no robot named {', '.join(map(repr, unknown))}; robots: {names}")
+            hit = [r for r in self.robots if fault.robots is None or r.name in fault.robots]
+            if isinstance(fault, EncoderFailureFault):
+                wheeled = [r for r in hit if fault.wheel in PRESETS[r.preset].wheel_names]
+                if (fault.robots is not None and len(wheeled) < len(hit)) or not wheeled:
+                    raise ValueError(
+                        f"faults.{i} (encoder_failure): wheel {fault.wheel!r} is not a wheel of "
+                        f"{', '.join(r.name for r in hit if r not in wheeled) or 'any robot'}; wheels per preset: {_per_preset('wheel_names')}"
+                    )
+            if isinstance(fault, CameraDarkFault) and fault.rigs is not None:
+                for r in hit:
+                    missing = [rig for rig in fault.rigs if rig not in PRESETS[r.preset].stereo_rig_names]
+                    if missing:
+                        raise ValueError(
+                            f"faults.{i} (camera_dark): rigs {missing} are not stereo rigs of {r.name}; "
+                            f"its rigs: {list(PRESETS[r.preset].stereo_rig_names)}"
+                        )
         return self
 
     def assigned_tag_ids(self) -> dict[str, list[int]]:
@@ -890,7 +1183,7 @@ class Scenario(StrictModel):
 
 
 def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
-    """Apply ``dotted.key=value`` overrides (values parsed as YAML) to a raw scenario.
+    """Apply ``dotted.key=value`` overrides (values parsed as YAML, :func:`sim.safe_yaml.load`) to a raw scenario.
 
     List elements are addressed by index, by name for lists of named items such as
     ``robots`` (``robots.lru1.route.speed_mps=0.4``), or all at once with ``*``
@@ -900,7 +1193,10 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]
         if "=" not in item:
             raise ScenarioError("--set", [f"{item!r}: expected dotted.key=value"])
         key, text = item.split("=", 1)
-        value = yaml.safe_load(text) if text.strip() else None
+        try:
+            value = safe_yaml.load(text)
+        except safe_yaml.YamlError as exc:
+            raise ScenarioError("--set", [f"{_shown(item)}: {exc}"]) from None
         _set(raw, key.strip().split("."), value, [])
     return raw
 
@@ -973,6 +1269,28 @@ def _inner_model(annotation: Any, tag: str | None = None) -> Any:
     return None
 
 
+def _bound_reason(loc: tuple) -> str | None:
+    """Why the key at ``loc`` is bounded: the ``why`` of its ``json_schema_extra``, if it has one."""
+    current: Any = Scenario
+    info = None
+    for part in loc:
+        fields = current.model_fields if isinstance(current, type) and issubclass(current, BaseModel) else {}
+        if isinstance(part, str) and part in fields:
+            info = fields[part]
+            current = _inner_model(info.annotation)
+    if info is None:
+        return None
+
+    def metadata(annotation: Any) -> list[Any]:
+        return [*getattr(annotation, "__metadata__", ()), *(m for arg in typing.get_args(annotation) for m in metadata(arg))]
+
+    for source in (info, *metadata(info.annotation)):
+        extra = getattr(source, "json_schema_extra", None)
+        if isinstance(extra, dict) and "why" in extra:
+            return str(extra["why"])
+    return None
+
+
 def _format_loc(loc: tuple, raw: dict[str, Any]) -> str:
     out: list[str] = []
     node: Any = raw
@@ -1006,12 +1324,20 @@ def _describe(error: dict, raw: dict[str, Any]) -> str:
         return f"{path}: required key `{error['ctx']['discriminator'].strip(chr(39))}` is missing"
     value = error.get("input")
     msg = error["msg"].removeprefix("Value error, ")
-    if isinstance(value, dict):  # a check across several keys: the message names them
-        return f"{path}: {msg}"
+    if isinstance(value, bool) and error["type"] in ("int_type", "float_type"):
+        msg += " (true and false are no numbers)"
+    if error["type"] in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
+        why = _bound_reason(loc)
+        msg += f": {why}" if why else ""
+    if isinstance(value, dict):  # a check across several keys: the message names them (one line each)
+        return "\n".join(f"{path}: {line}" for line in msg.splitlines())
+    return f"{path}: got {_shown(value)}: {msg}"
+
+
+def _shown(value: Any) -> str:
+    """``repr(value)``, cut to 80 characters."""
     shown = repr(value)
-    if len(shown) > 80:
-        shown = shown[:77] + "..."
-    return f"{path}: got {shown}: {msg}"
+    return shown[:77] + "..." if len(shown) > 80 else shown
 
 
 def load_scenario(source: str | Path | dict, overrides: list[str] | None = None) -> Scenario:
@@ -1024,16 +1350,16 @@ def load_scenario(source: str | Path | dict, overrides: list[str] | None = None)
         if not path.is_file():
             raise ScenarioError(label, ["file not found"])
         try:
-            raw = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as exc:
-            raise ScenarioError(label, [f"not valid YAML: {exc}"]) from exc
+            raw = safe_yaml.load(path)
+        except safe_yaml.YamlError as exc:
+            raise ScenarioError(label, [str(exc)]) from None
         if not isinstance(raw, dict):
             raise ScenarioError(label, [f"top level must be a mapping, got {type(raw).__name__}"])
     raw = apply_overrides(raw, overrides or [])
     try:
         return Scenario.model_validate(raw)
     except ValidationError as exc:
-        raise ScenarioError(label, [_describe(e, raw) for e in exc.errors()]) from None
+        raise ScenarioError(label, [line for e in exc.errors() for line in _describe(e, raw).splitlines()]) from None
 
 
 def dump_scenario(scenario: Scenario) -> str:

@@ -64,6 +64,7 @@ KIND_DETECTION = "detection"
 KIND_FRAME_SWITCH = "frame_switch"
 KIND_SUBMAP = "submap"
 KIND_LOOP_CLOSURE = "loop_closure"
+MESSAGE_KINDS = (KIND_POSE, KIND_DETECTION, KIND_FRAME_SWITCH, KIND_SUBMAP, KIND_LOOP_CLOSURE)
 
 
 @dataclass(frozen=True)

@@ -204,7 +204,12 @@ def test_wrong_detections_are_wrong_against_truth_counted_and_marked(runs):
 def test_rate_zero_changes_nothing_against_no_faults_section(runs):
     none, zero = runs("none"), runs("zero", ZERO)
     assert none["robots"]["lru1"]["slam"]["detections"]["used"] >= 2  # there were detections to spare
-    assert none["robots"]["lru1"]["faults"] == zero["robots"]["lru1"]["faults"] == {"injected": dict.fromkeys(MEASUREMENT_FAULTS, 0), "events": []}
+    assert none["robots"]["lru1"]["faults"] == zero["robots"]["lru1"]["faults"] == {
+        "injected": dict.fromkeys(MEASUREMENT_FAULTS, 0),
+        "events": [],
+        "timeline": [],
+        "died_s": None,
+    }
     assert without_wall_time(zero) == without_wall_time(none)
 
 
@@ -215,4 +220,4 @@ def test_same_seed_same_wrong_detections_same_metrics(runs, tmp_path):
 
 
 def test_fault_metrics_without_an_onboard_stack():
-    assert fault_metrics(None) == {"injected": {"wrong_detection": 0, "wrong_match": 0}, "events": []}
+    assert fault_metrics(None) == {"injected": {"wrong_detection": 0, "wrong_match": 0}, "events": [], "timeline": [], "died_s": None}

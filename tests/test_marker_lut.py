@@ -85,7 +85,7 @@ def test_committed_table_regenerates_identically(scene):
     valid = np.argwhere(np.isfinite(table.raw[..., 0]))
     for i, j in (valid[0], valid[len(valid) // 2], valid[-1]):
         again = cell_errors(scene, detector, float(table.distances_m[i]), float(table.angles_rad[j]), table.dp_px, table.blur_sigma_px)
-        np.testing.assert_array_equal(again, table.raw[i, j])
+        np.testing.assert_allclose(again, table.raw[i, j], rtol=1e-12, atol=0)  # to the last bits, which library versions move
     np.testing.assert_array_equal(postprocess(table.raw), table.errors)
     assert LUT_DIR.joinpath("README.md").exists()
 

@@ -267,7 +267,8 @@ def test_hexacopter_altitude_waypoints_landing(terrain):
 def test_hexacopter_landing_on_a_parked_rover_moves_aside():
     world = make_world(
         [
-            {"name": "rover", "preset": "lru", "start": {"xy": [2.0, 0.35], "yaw_deg": 0}},  # under one skid
+            # under one skid, turned so that its mast stands clear of the rotors (they collide)
+            {"name": "rover", "preset": "lru", "start": {"xy": [2.0, 0.35], "yaw_deg": 90}},
             {"name": "copter", "preset": "ardea", "start": {"xy": [-2, 0]},
              "route": {"speed_mps": 1.0, "cruise_altitude_m": 1.5, "land": True, "waypoints": [[2, 0]]}},
         ],
@@ -280,6 +281,22 @@ def test_hexacopter_landing_on_a_parked_rover_moves_aside():
     pos, _ = copter.pose()
     assert pos[2] - 0.29 == pytest.approx(float(world.terrain.height_at(pos[0], pos[1])), abs=0.03)
     assert not rover.tipped_over
+
+
+def test_a_rover_cannot_drive_under_the_lander_deck():
+    """The LRU's chassis passes between the lander's legs, below its deck (0.7 m), but its mast and head
+    (1.3 m) collide with the deck's edge: the rover stops there and the waypoint behind the lander fails."""
+    world = make_world(
+        [{"name": "rover", "preset": "lru", "start": {"xy": [-5.0, 0.0]}, "route": {"waypoints": [[5.0, 0.0]], "stuck_timeout_s": 8.0}}],
+        {**FLAT, "lander": {"xy": [0.0, 0.0]}},
+    )
+    (rover,) = world.robots
+    furthest = []
+    run_until_finished(world, 40, every=lambda w: furthest.append(rover.pose()[0][0]))
+    assert max(furthest) < -0.8  # mast at 0.18 m ahead of the body centre, deck edge at -0.8 m
+    assert max(furthest) > -1.5  # it got there
+    (wp,) = rover.waypoints
+    assert wp.status == "failed" and wp.reason in ("stuck", "timeout"), wp
 
 
 # ------------------------------------------------------------------ markers and cameras

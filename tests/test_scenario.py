@@ -162,7 +162,7 @@ def test_robust_option_of_the_graph_is_a_validated_key():
 
 
 def test_tag_ids_are_distinct_and_dump_reloads():
-    s = load_scenario(minimal(terrain={"lander": {"tag_id": 1}}))
+    s = load_scenario(minimal(terrain={"lander": {"tag_id": 1, "xy": [10, 10]}}))
     ids = s.assigned_tag_ids()
     flat = [t for v in ids.values() for t in v]
     assert len(flat) == len(set(flat)) == 5 and 1 not in flat

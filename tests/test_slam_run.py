@@ -96,7 +96,7 @@ def test_same_scenario_same_slam(runs):
     a, b = runs
     for name in a.robots:
         sa, sb = a.robots[name].onboard.slam_log, b.robots[name].onboard.slam_log
-        assert sa.t == sb.t
+        assert np.array_equal(np.asarray(sa.t), np.asarray(sb.t))
         assert np.array_equal(np.stack(sa.pose), np.stack(sb.pose))
         assert a.robots[name].onboard.agent.graph.signatures() == b.robots[name].onboard.agent.graph.signatures()
 

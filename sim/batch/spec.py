@@ -36,6 +36,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from sim import safe_yaml
 from sim.scenario import ScenarioError, load_scenario
 
 LABEL_PATTERN = r"^[A-Za-z0-9_.-]+$"
@@ -239,9 +240,9 @@ def load_batch(path: str | Path, extra: list[str] | None = None, max_seeds: int 
     if not path.is_file():
         raise BatchError(label, ["file not found"])
     try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise BatchError(label, [f"not valid YAML: {exc}"]) from exc
+        data = safe_yaml.load(path)
+    except safe_yaml.YamlError as exc:
+        raise BatchError(label, [str(exc)]) from None
     try:
         config = BatchConfig.model_validate(data)
     except ValidationError as exc:
@@ -252,9 +253,11 @@ def load_batch(path: str | Path, extra: list[str] | None = None, max_seeds: int 
     if not scenario_path.is_file():
         raise BatchError(label, [f"scenario: {config.scenario!r}: no such file ({scenario_path})"])
     try:
-        raw = yaml.safe_load(scenario_path.read_text())
-    except yaml.YAMLError as exc:
-        raise BatchError(label, [f"scenario: {scenario_path} is not valid YAML: {exc}"]) from exc
+        raw = safe_yaml.load(scenario_path)
+    except safe_yaml.YamlError as exc:
+        raise BatchError(label, [f"scenario: {scenario_path}: {exc}"]) from None
+    if not isinstance(raw, dict):
+        raise BatchError(label, [f"scenario: {scenario_path}: top level must be a mapping, got {type(raw).__name__}"])
     variants = expand(config)
     names = [v.name for v in variants]
     if config.baseline is not None and config.baseline not in names:
@@ -282,7 +285,7 @@ def scenario_dict(raw: dict[str, Any], robots: list[str] | None) -> dict[str, An
         unknown = [name for name in robots if name not in present]
         if unknown:
             raise ScenarioError("robots", [f"robots: no robot named {', '.join(map(repr, unknown))} in the base scenario; robots: {present}"])
-        out["robots"] = [r for r in out["robots"] if r.get("name") in robots]
+        out["robots"] = [r for r in out["robots"] if isinstance(r, dict) and r.get("name") in robots]
     return out
 
 

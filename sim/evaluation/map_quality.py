@@ -33,7 +33,8 @@ import numpy as np
 from scipy.ndimage import binary_dilation, maximum_filter, minimum_filter
 from scipy.spatial import ConvexHull, cKDTree
 
-from sim.world.terrain import LANDER_RADIUS, Terrain
+from sim.world.lander import LANDER_RADIUS
+from sim.world.terrain import Terrain
 from slam.obstacles import ObstacleParams, slope_reach_cells, steep_drops
 
 

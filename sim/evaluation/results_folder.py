@@ -131,7 +131,7 @@ def _robot_results(run: Run, out: Path, name: str, truth: inputs.TeamTruth, reco
         "stereo": stereo,
         "imaging": _imaging(log),
         **sections,
-        "faults": fault_metrics(runtime.onboard),  # injected wrong measurements (sim/run/faults.py)
+        "faults": fault_metrics(runtime.onboard, runtime.faults, run.sim_time),  # injected failures (sim/run/faults.py)
         "health": inputs.health_report(runtime.onboard, run.mission_s) if runtime.onboard is not None else None,
         "lane": {
             "utilization": runtime.lane.utilization(run.sim_time),

@@ -90,7 +90,9 @@ class Ardea(Robot):
     marker_count = 2  # left and right
     default_cores = 2  # dual-core (thesis 7.1)
     default_imu_preset = "adis16407"
+    stereo_rig_names = ("up", "down")
     default_vo_rig = "down"
+    max_speed_mps = 5.0  # chosen: at the position controller's 4 m/s^2 it brakes from 5 m/s within about 3 m
     antenna_height_m = 0.3
     body_radius_m = ROTOR_RADIUS_M + 0.05  # arm ends around the rotor sites
     #: Its downward stereo matches from the matcher's minimum depth on, and closer ground

@@ -104,10 +104,16 @@ class Robot(ABC):
     default_cores: ClassVar[int]
     #: IMU model (a key of ``sim.world.sensors.IMU_PRESETS``) unless ``imu.preset`` says otherwise (thesis 7.1).
     default_imu_preset: ClassVar[str]
+    #: Names of the stereo rigs it builds (what ``slam.vo_rig`` may name).
+    stereo_rig_names: ClassVar[tuple[str, ...]]
     #: Stereo rig whose images feed the visual odometry unless ``slam.vo_rig`` says otherwise.
     default_vo_rig: ClassVar[str]
+    #: Fastest ``route.speed_mps`` it can follow (m/s).
+    max_speed_mps: ClassVar[float]
     #: Wheel encoders: the run turns :meth:`wheel_states` into wheel odometry, which the filter fuses.
     has_wheel_odometry: ClassVar[bool] = False
+    #: Names of its wheels, in the order of :meth:`wheel_states` (what an ``encoder_failure`` fault names).
+    wheel_names: ClassVar[tuple[str, ...]] = ()
     #: Height of the radio antenna above the body origin (m), for the network's line of sight.
     antenna_height_m: ClassVar[float]
     #: Horizontal reach of the robot's geometry around its body origin (m): map points this
@@ -126,6 +132,8 @@ class Robot(ABC):
         that it cannot do (:class:`sim.scenario.RobotConfig` validation calls this)."""
         if cfg.tag_ids is not None and len(cfg.tag_ids) != cls.marker_count:
             raise ValueError(f"preset {cfg.preset} carries {cls.marker_count} markers, got {len(cfg.tag_ids)} tag_ids")
+        if cfg.route.speed_mps > cls.max_speed_mps:
+            raise ValueError(f"route.speed_mps: got {cfg.route.speed_mps:g}: preset {cfg.preset} goes at most {cls.max_speed_mps:g} m/s")
 
     def __init__(self, cfg: RobotConfig, tag_ids: Sequence[int]):
         tag_ids = [int(t) for t in tag_ids]
@@ -146,6 +154,7 @@ class Robot(ABC):
         self.waypoints: list[WaypointRecord] = self.route.records
         self.phase = "idle"
         self.tipped_over = False
+        self.dead = False
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._attached = False
@@ -289,14 +298,21 @@ class Robot(ABC):
     def control(self, t: float, terrain: Terrain) -> None:
         """Set ``data.ctrl`` for this robot's actuators and advance its route."""
         self._require_bound()
-        if not self.tipped_over and self._is_tipped():
+        if not self.tipped_over and not self.dead and self._is_tipped():
             self.tipped_over = True
             self.route.fail_remaining(t, "tipped_over")
             self.phase = "tipped over"
-        if self.tipped_over or t < self.cfg.route.start_delay_s:
+        if self.dead or self.tipped_over or t < self.cfg.route.start_delay_s:
             self._stop()
             return
         self._control(t, terrain)
+
+    def fail(self, t: float) -> None:
+        """The robot dies (a ``dies`` fault, sim/run/faults.py): motors off from now on, every waypoint left
+        fails as "dead"."""
+        self.dead = True
+        self.route.fail_remaining(t, "dead")
+        self.phase = "dead"
 
     @abstractmethod
     def _control(self, t: float, terrain: Terrain) -> None:
@@ -308,7 +324,7 @@ class Robot(ABC):
 
     @property
     def finished(self) -> bool:
-        return self.phase in ("done", "tipped over")
+        return self.phase in ("done", "tipped over", "dead")
 
     @property
     @abstractmethod
@@ -320,6 +336,8 @@ class Robot(ABC):
     @property
     def status(self) -> str:
         """Short human state for a progress bar."""
+        if self.dead:
+            return "dead"
         if self.tipped_over:
             return "tipped over"
         n = len(self.waypoints)

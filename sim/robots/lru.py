@@ -56,6 +56,7 @@ if TYPE_CHECKING:
     from sim.world.terrain import Terrain
 
 WHEEL_RADIUS_M = 0.15
+MAX_WHEEL_RATE_RPS = 15.0  # the drive motors' limit
 WHEEL_FRICTION = 0.8  # wheel-regolith traction; with priority=1 it overrides the ground geom's
 WHEEL_X_M = 0.32
 WHEEL_Y_M = 0.37
@@ -95,8 +96,11 @@ class LRU(Robot):
     marker_count = len(MARKER_AZIMUTHS_DEG)
     default_cores = 4  # quad-core i7 (thesis 7.1)
     default_imu_preset = "xsens_mti10"
+    stereo_rig_names = ("head",)
     default_vo_rig = "head"
+    max_speed_mps = MAX_WHEEL_RATE_RPS * WHEEL_RADIUS_M  # 2.25 m/s with the wheels at their limit
     has_wheel_odometry = True
+    wheel_names = WHEELS
     pan_tilt_head = True
     antenna_height_m = 1.6  # on the mast
     body_radius_m = math.hypot(WHEEL_X_M, WHEEL_Y_M) + WHEEL_RADIUS_M  # wheel corners: 0.64 m
@@ -167,7 +171,8 @@ class LRU(Robot):
             root.actuator.add("position", name=f"steer_{name}", joint=f"steer_{name}", kp=150.0,
                               forcelimited=True, forcerange=[-60, 60], ctrlrange=[-1.75, 1.75], ctrllimited=True)
             root.actuator.add("velocity", name=f"drive_{name}", joint=f"drive_{name}", kv=25.0,
-                              forcelimited=True, forcerange=[-40, 40], ctrlrange=[-15, 15], ctrllimited=True)
+                              forcelimited=True, forcerange=[-40, 40], ctrlrange=[-MAX_WHEEL_RATE_RPS, MAX_WHEEL_RATE_RPS],
+                              ctrllimited=True)
         root.actuator.add("position", name="pan", joint="pan", kp=10.0, forcelimited=True, forcerange=[-10, 10],
                           ctrlrange=[-3.2, 3.2], ctrllimited=True)
         root.actuator.add("position", name="tilt", joint="tilt", kp=10.0, forcelimited=True, forcerange=[-10, 10],

@@ -20,26 +20,46 @@ as no ``faults`` section. Every injected measurement is recorded (:class:`FaultE
 reports per robot ``faults.injected`` (counts per type) and ``faults.events``, which tell the injected wrong
 closures from real ones (the robot's records mark them too: ``DetectionRecord.injected``, match reason
 ``injected``).
+
+Condition faults (:class:`ConditionFaults`) make part of a robot fail for their window (``dies``: for good);
+the run (sim/run/runner.py) asks about them where the failing part works:
+
+- ``dies``: the robot's motors stop (:meth:`sim.robots.base.Robot.fail`; a flying hexacopter falls), its
+  sensors stop, its lane halts (:meth:`sim.run.lanes.Lane.halt`) and its radio fails for good; the team keeps
+  whatever it received from it;
+- ``camera_dark``: the rendered images of the dark rigs are black before image formation (the sensor's noise
+  stays, sim/world/imaging.py);
+- ``imu_stuck``: the IMU repeats the sample before the window; ``imu_saturation``: each axis clips;
+- ``encoder_failure``: one wheel's encoder reads zero speed, and wheel odometry uses it;
+- ``radio_silent``: every link to and from the robot is down (:meth:`comms.Network.radio_fault`);
+- ``compute_slowdown``: its lane's compute times are multiplied by ``factor``.
+
+``metrics.json`` ``robots.<name>.faults.timeline`` lists the condition faults that began before the run
+ended, each with its window, and ``died_s`` when the robot died.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sim.scenario import MeasurementFault, Scenario
+from sim.robots import PRESETS
+from sim.scenario import FaultEntry, ImuSaturationFault, MeasurementFault, Scenario
 from sim.seeding import RandomStreams
 from slam.lie import rot_z, se3, so3_exp
 from slam.matcher import SubmapKey
 
 if TYPE_CHECKING:
+    from sim.robots.base import WheelState
     from sim.run.onboard import OnboardStack
 
 #: Measurement fault types, in the order ``faults.injected`` lists them.
 MEASUREMENT_FAULTS = ("wrong_detection", "wrong_match")
+#: Condition fault types: a part of the robot fails for a window (``dies``: for good).
+CONDITION_FAULTS = ("dies", "camera_dark", "imu_stuck", "imu_saturation", "encoder_failure", "radio_silent", "compute_slowdown")
 
 
 @dataclass(frozen=True)
@@ -103,9 +123,70 @@ def measurement_faults(scenario: Scenario, robot: str, streams: RandomStreams) -
     return MeasurementFaultInjector(robot, entries, streams) if entries else None
 
 
-def fault_metrics(onboard: OnboardStack | None) -> dict[str, Any]:
-    """``metrics.json`` ``robots.<name>.faults``: injected wrong measurements per type, and each of them."""
+class ConditionFaults:
+    """One robot's condition faults (module docstring): which one is active when, and what the run made of them."""
+
+    def __init__(self, robot: str, entries: list[tuple[int, FaultEntry]]):
+        self.robot = robot
+        self.entries = entries
+        self.died_s: float | None = None
+        self._last_imu: tuple[np.ndarray, np.ndarray] | None = None
+
+    def active(self, kind: str, t: float) -> FaultEntry | None:
+        """The first entry of ``kind`` active at ``t``."""
+        return next((e for _, e in self.entries if e.type == kind and e.hits(self.robot, t)), None)
+
+    def dark(self, rig: str, t: float) -> bool:
+        """Whether the stereo rig ``rig`` is dark at ``t``."""
+        return any(e.type == "camera_dark" and e.hits(self.robot, t) and (e.rigs is None or rig in e.rigs) for _, e in self.entries)
+
+    def imu(self, t: float, accel: np.ndarray, gyro: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The IMU sample as the failing IMU gives it."""
+        if self.active("imu_stuck", t) is not None and self._last_imu is not None:
+            return self._last_imu
+        saturation = self.active("imu_saturation", t)
+        if isinstance(saturation, ImuSaturationFault):
+            limit = math.radians(saturation.gyro_limit_dps)
+            accel = np.clip(accel, -saturation.accel_limit_mps2, saturation.accel_limit_mps2)
+            gyro = np.clip(gyro, -limit, limit)
+        self._last_imu = (accel, gyro)
+        return accel, gyro
+
+    def wheels(self, t: float, names: tuple[str, ...], states: list[WheelState]) -> list[WheelState]:
+        """The wheel states as the encoders read them: a failed encoder reads zero speed."""
+        failed = {e.wheel for _, e in self.entries if e.type == "encoder_failure" and e.hits(self.robot, t)}
+        if not failed:
+            return states
+        return [replace(w, angular_speed=0.0) if name in failed else w for name, w in zip(names, states)]
+
+    def timeline(self, end_s: float) -> list[dict[str, Any]]:
+        """The condition faults that began by ``end_s``: type, entry index and window (``end_s`` None: to the end)."""
+        return [
+            {"type": e.type, "entry": i, "start_s": e.start_s, "end_s": e.end_s if e.end_s is not None and e.end_s < end_s else None}
+            for i, e in self.entries
+            if e.start_s <= end_s
+        ]
+
+
+def condition_faults(scenario: Scenario, robot: str) -> ConditionFaults | None:
+    """The robot's condition faults, None when no entry can hit it (an ``encoder_failure`` hits only robots with
+    that wheel: the scenario checks that it hits some)."""
+    preset = PRESETS[scenario.robot(robot).preset]
+    entries = [
+        (i, f)
+        for i, f in enumerate(scenario.faults)
+        if f.type in CONDITION_FAULTS and (f.robots is None or robot in f.robots) and (f.type != "encoder_failure" or f.wheel in preset.wheel_names)
+    ]
+    return ConditionFaults(robot, entries) if entries else None
+
+
+def fault_metrics(onboard: OnboardStack | None, conditions: ConditionFaults | None = None, end_s: float = math.inf) -> dict[str, Any]:
+    """``metrics.json`` ``robots.<name>.faults``: injected wrong measurements per type and each of them; the
+    condition faults' timeline up to ``end_s`` and when the robot died (None: it did not)."""
     injector = onboard.faults if onboard is not None else None
-    if injector is None:
-        return {"injected": dict.fromkeys(MEASUREMENT_FAULTS, 0), "events": []}
-    return {"injected": injector.counts(), "events": [asdict(e) for e in injector.events]}
+    out: dict[str, Any] = {"injected": dict.fromkeys(MEASUREMENT_FAULTS, 0), "events": []}
+    if injector is not None:
+        out = {"injected": injector.counts(), "events": [asdict(e) for e in injector.events]}
+    out["timeline"] = conditions.timeline(end_s) if conditions is not None else []
+    out["died_s"] = conditions.died_s if conditions is not None else None
+    return out

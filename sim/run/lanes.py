@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import simpy
 
+from sim.run.series import Rows
 from sim.scenario import ComputeConfig
 
 
@@ -58,6 +59,8 @@ class ComputeModel:
 
 @dataclass
 class JobRecord:
+    """A job in flight; once finished, a row of its stage's :attr:`_StageQueue.done`."""
+
     stage: str
     device: str
     submitted: float
@@ -65,13 +68,27 @@ class JobRecord:
     finished: float | None = None
     wall_s: float = 0.0
     compute_s: float = 0.0
-    dropped: bool = False
+
+
+#: Columns of a stage's finished jobs (:attr:`_StageQueue.done`).
+DONE_COLUMNS = ("submitted", "started", "finished", "wall_s", "compute_s")
 
 
 @dataclass
 class _StageQueue:
+    """One stage's jobs: counts, and a row per finished job (:data:`DONE_COLUMNS`) in compact rows, since a
+    long run has millions of jobs."""
+
+    device: str = Device.CPU
     waiting: int = 0
-    records: list[JobRecord] = field(default_factory=list)
+    submitted: int = 0
+    dropped: int = 0
+    done: Rows = field(default_factory=Rows)
+
+    def column(self, name: str) -> np.ndarray:
+        """One column of the finished jobs."""
+        rows = np.asarray(self.done)
+        return rows[:, DONE_COLUMNS.index(name)] if len(rows) else np.zeros(0)
 
 
 class Lane:
@@ -91,9 +108,18 @@ class Lane:
         self.wall_s = 0.0
         self._stages: dict[str, _StageQueue] = defaultdict(_StageQueue)
         self._active: Counter[Priority] = Counter()  # jobs submitted and not yet done, per priority
+        self.slowdown = 1.0  # compute time multiplier (a ``compute_slowdown`` fault, sim/run/faults.py)
+        self.halted = False  # the computer is dead: no job starts or reports any more
+
+    def halt(self) -> None:
+        """The computer dies: jobs submitted from now on are refused (``submit`` returns None), queued ones
+        never start, running ones report no result."""
+        self.halted = True
 
     def busy(self, priority: Priority | None = None) -> bool:
-        """Whether a job (of ``priority``, or of any) is waiting or running."""
+        """Whether a job (of ``priority``, or of any) is waiting or running (never, once halted)."""
+        if self.halted:
+            return False
         return self._active[priority] > 0 if priority is not None else any(self._active.values())
 
     def device_for(self, preferred: str) -> str:
@@ -108,12 +134,15 @@ class Lane:
         priority: Priority = Priority.REALTIME,
         device: str = Device.CPU,
     ) -> simpy.Process | None:
+        if self.halted:
+            return None
         device = self.device_for(device)
         queue = self._stages[stage]
         record = JobRecord(stage=stage, device=device, submitted=self.env.now)
-        queue.records.append(record)
+        queue.device = device
+        queue.submitted += 1
         if priority == Priority.REALTIME and queue.waiting >= self.max_queue:
-            record.dropped = True
+            queue.dropped += 1
             return None
         resource = self.devices[device]
         # requested now, so a job that finds its device free holds it at once
@@ -136,12 +165,14 @@ class Lane:
         try:
             yield request
             queue.waiting -= waits
+            if self.halted:
+                return
             record.started = self.env.now
             t0 = time.perf_counter()
             result = work()
             record.wall_s = time.perf_counter() - t0
             self.wall_s += record.wall_s
-            record.compute_s = self.compute.cost(record.stage, record.wall_s)
+            record.compute_s = self.compute.cost(record.stage, record.wall_s) * self.slowdown
             left = record.compute_s
             while True:
                 start = self.env.now
@@ -154,34 +185,34 @@ class Lane:
                     yield request
             record.finished = self.env.now
             self.busy_s[record.device] += record.compute_s
+            queue.done.append([record.submitted, record.started, record.finished, record.wall_s, record.compute_s])
         finally:
             resource.release(request)
             self._active[priority] -= 1
-        if on_done is not None:
+        if on_done is not None and not self.halted:
             on_done(result, self.env.now)
 
     def stats(self, sim_time_s: float) -> list[dict[str, Any]]:
         """One row per stage: jobs, drops, queueing delay, compute time, device utilisation."""
         rows = []
         for stage, queue in sorted(self._stages.items()):
-            done = [r for r in queue.records if r.finished is not None]
-            delays = np.array([r.started - r.submitted for r in done]) if done else np.zeros(0)
-            latency = np.array([r.finished - r.submitted for r in done]) if done else np.zeros(0)
-            device = queue.records[0].device if queue.records else Device.CPU
+            submitted, started, finished = (queue.column(c) for c in ("submitted", "started", "finished"))
+            delays, latency = started - submitted, finished - submitted
+            compute, wall = queue.column("compute_s"), queue.column("wall_s")
             rows.append(
                 {
                     "robot": self.robot,
                     "stage": stage,
-                    "device": device,
-                    "submitted": len(queue.records),
-                    "completed": len(done),
-                    "dropped": sum(r.dropped for r in queue.records),
+                    "device": queue.device,
+                    "submitted": queue.submitted,
+                    "completed": len(queue.done),
+                    "dropped": queue.dropped,
                     "queue_delay_mean_s": float(delays.mean()) if delays.size else 0.0,
                     "queue_delay_p95_s": float(np.percentile(delays, 95)) if delays.size else 0.0,
                     "queue_delay_max_s": float(delays.max()) if delays.size else 0.0,
                     "latency_mean_s": float(latency.mean()) if latency.size else 0.0,
-                    "compute_mean_s": float(np.mean([r.compute_s for r in done])) if done else 0.0,
-                    "wall_mean_s": float(np.mean([r.wall_s for r in done])) if done else 0.0,
+                    "compute_mean_s": float(compute.mean()) if compute.size else 0.0,
+                    "wall_mean_s": float(wall.mean()) if wall.size else 0.0,
                 }
             )
         return rows

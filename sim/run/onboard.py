@@ -156,11 +156,7 @@ class OnboardStack:
         self.slam_cfg = cfg
         self.use_odometry = cfg.wheel_odometry and robot.has_wheel_odometry
         self.odometry_noise = slam_kwargs(LocalEstimator.on_wheel_odometry, cfg)  # the std the filter assumes
-        rig_name = cfg.vo_rig or robot.default_vo_rig
-        rigs = {rig.name: rig for rig in robot.stereo_rigs}
-        if rig_name not in rigs:
-            raise ValueError(f"slam.vo_rig {rig_name!r} is not a stereo rig of {robot.name}; rigs: {sorted(rigs)}")
-        self.vo_rig = rigs[rig_name]
+        self.vo_rig = {rig.name: rig for rig in robot.stereo_rigs}[cfg.vo_rig or robot.default_vo_rig]  # checked by the scenario
         mapping = cfg.mapping
         self.estimator = LocalEstimator(
             filter_params(imu_spec, gravity, cfg),
@@ -250,6 +246,8 @@ class OnboardStack:
     def busy(self) -> bool:
         """Whether the robot has work left once its sensors are off: a job on its lane, or
         factors or submap matching no job has been queued for."""
+        if self.lane.halted:  # a dead robot's computer
+            return False
         matcher = self.agent.matcher
         return self.lane.busy() or self.agent.dirty or (matcher is not None and matcher.has_work)
 

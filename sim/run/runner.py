@@ -31,6 +31,7 @@ from comms import Network, StereoStream, raw_stereo_load
 from sim.evaluation.image_classification import ImageCells
 from sim.robots import make_robot
 from sim.robots.base import Robot
+from sim.run.faults import ConditionFaults, condition_faults
 from sim.run.lanes import ComputeModel, Device, Lane, Priority
 from sim.run.memory import MemoryTrace
 from sim.run.onboard import OnboardStack, body_camera_transform, calibration
@@ -160,6 +161,7 @@ class RobotRuntime:
     odom_every: int
     onboard: OnboardStack | None
     log: RobotLog = field(default_factory=RobotLog)
+    faults: ConditionFaults | None = None  # the scenario's condition faults that hit the robot (sim/run/faults.py)
     image_cells: ImageCells | None = None  # mapped images' obstacle cells at true camera poses
     capture_truth: dict[int, tuple[np.ndarray, list]] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots
 
@@ -197,7 +199,7 @@ class Run:
         t0 = time.perf_counter()
         tags = scenario.assigned_tag_ids()
         self.terrain: Terrain = generate_terrain(
-            scenario.terrain, self.streams.rng("terrain"), self._keep_clear(), scenario.realism.light.albedo_contrast_scale
+            scenario.terrain, self.streams.rng("terrain"), scenario.keep_clear(), scenario.realism.light.albedo_contrast_scale
         )
         robots = [make_robot(cfg, tags[cfg.name]) for cfg in scenario.robots]
         self.world: World = build_world(scenario, self.terrain, robots)
@@ -224,6 +226,9 @@ class Run:
         for runtime in self.robots.values():
             if runtime.onboard is not None:
                 runtime.onboard.connect(self.network)
+        for runtime in self.robots.values():
+            if runtime.faults is not None:
+                self._schedule_faults(runtime, runtime.faults)
         if self.recorder is not None:
             self.recorder.log_world(self.terrain, self.world)
             self.network.subscribe(self.recorder.log_link_event)
@@ -254,17 +259,6 @@ class Run:
             mujoco.mj_step(model, data, nstep=self.substeps)
         data.time = 0.0
         mujoco.mj_forward(model, data)
-
-    def _keep_clear(self) -> list[tuple[tuple[float, float], float]]:
-        clear = self.scenario.terrain.rocks.clearance_m
-        discs = []
-        for cfg in self.scenario.robots:
-            discs.append((cfg.start.xy, clear))
-            points = [cfg.start.xy] + [w.xy for w in cfg.route.waypoints]
-            for (x0, y0), (x1, y1) in itertools.pairwise(points):  # the straight legs between waypoints
-                n = max(1, int(math.hypot(x1 - x0, y1 - y0) / clear))
-                discs += [((x0 + (x1 - x0) * i / n, y0 + (y1 - y0) * i / n), clear) for i in range(n + 1)]
-        return discs
 
     def _every(self, rate_hz: float, what: str) -> int:
         ticks = self.scenario.physics.control_rate_hz / rate_hz
@@ -317,11 +311,39 @@ class Run:
             odometry=odometry,
             odom_every=self._every(cfg.wheel_odometry.rate_hz, f"robots.{robot.name}.wheel_odometry"),
             onboard=onboard,
+            faults=condition_faults(self.scenario, robot.name),
         )
         if onboard is not None and onboard.mapper is not None:
             runtime.image_cells = ImageCells(calibration(onboard.vo_rig), onboard.mapper.obstacle_params)
             onboard.on_mapped = lambda frame_id, depth, c, r=runtime: self._score_image(r, frame_id, depth, c.pixel_obstacles)
         return runtime
+
+    # ------------------------------------------------------------------ injected faults
+
+    def _schedule_faults(self, runtime: RobotRuntime, faults: ConditionFaults) -> None:
+        """The condition faults that act at their start and end (sim/run/faults.py); the others act where the
+        failing part works (:meth:`_sample`, :meth:`_capture`)."""
+        for _, entry in faults.entries:
+            if entry.type == "dies":
+                self.env.process(self._die(runtime, faults, entry.start_s))
+            elif entry.type == "radio_silent":
+                self.network.radio_fault(runtime.robot.name, entry.start_s, entry.end_s)
+            elif entry.type == "compute_slowdown":
+                self.env.process(self._slow_down(runtime.lane, entry.start_s, entry.end_s, entry.factor))
+
+    def _die(self, runtime: RobotRuntime, faults: ConditionFaults, at_s: float):
+        yield self.env.timeout(max(0.0, at_s - self.env.now))
+        faults.died_s = self.env.now
+        runtime.robot.fail(self.env.now)
+        runtime.lane.halt()
+        self.network.radio_fault(runtime.robot.name, self.env.now)
+
+    def _slow_down(self, lane: Lane, start_s: float, end_s: float | None, factor: float):
+        yield self.env.timeout(max(0.0, start_s - self.env.now))
+        lane.slowdown *= factor
+        if end_s is not None:
+            yield self.env.timeout(max(0.0, end_s - self.env.now))
+            lane.slowdown /= factor
 
     # ------------------------------------------------------------------ network geometry
 
@@ -456,8 +478,14 @@ class Run:
             progress(self.env.now, self.statuses())
 
     def messages_in_flight(self) -> int:
-        """Messages sent and neither delivered nor dropped yet."""
-        return sum(f.offered_msgs - f.delivered_msgs - sum(m for m, _ in f.dropped.values()) for f in self.network.accounting.flows.values())
+        """Messages sent and neither delivered nor dropped yet, except those from or to a dead robot (they
+        wait for a radio that never comes back)."""
+        dead = {name for name, r in self.robots.items() if r.robot.dead}
+        return sum(
+            f.offered_msgs - f.delivered_msgs - sum(m for m, _ in f.dropped.values())
+            for (src, dst, _), f in self.network.accounting.flows.items()
+            if src not in dead and dst not in dead
+        )
 
     def statuses(self) -> dict[str, str]:
         return {name: r.robot.status for name, r in self.robots.items()}
@@ -474,12 +502,17 @@ class Run:
                 log.gt_pose.append(np.concatenate([pos, quat]))
                 if self.recorder is not None:
                     self.recorder.log_pose(robot.name, now, pos, quat)
-                if onboard is not None:
+                if onboard is not None and not robot.dead:
                     bias_true = np.concatenate([runtime.imu.accel_bias, runtime.imu.gyro_bias])
                     onboard.record(now, robot.rotation(), robot.velocity()[0], bias_true)
+            if robot.dead:  # its sensors and computer are off; the truth goes on
+                runtime.inertial.take(data)
+                continue
             if tick % runtime.imu_every == 0:
                 specific_force, rate = runtime.inertial.take(data)
                 accel, gyro = runtime.imu.measure(specific_force, rate)
+                if runtime.faults is not None:
+                    accel, gyro = runtime.faults.imu(now, accel, gyro)
                 log.imu_t.append(now)
                 log.imu.append(np.concatenate([accel, gyro]))
                 log.imu_true.append(np.concatenate([specific_force, rate]))
@@ -487,7 +520,10 @@ class Run:
                 if onboard is not None:
                     onboard.imu(now, accel, gyro)
             if runtime.odometry is not None and tick % runtime.odom_every == 0:
-                odom = runtime.odometry.measure(robot.wheel_states(), robot.rotation()[2, 0])
+                wheels = robot.wheel_states()
+                if runtime.faults is not None:
+                    wheels = runtime.faults.wheels(now, robot.wheel_names, wheels)
+                odom = runtime.odometry.measure(wheels, robot.rotation()[2, 0])
                 log.odom_t.append(now)
                 log.odom.append(odom)
                 if onboard is not None:
@@ -505,6 +541,8 @@ class Run:
             t = time.perf_counter()
             stereo = renderer.render(self.world.data, with_depth=with_depth)
             t = self.timers.add("rendering", t)
+            if runtime.faults is not None and runtime.faults.dark(rig.name, now):
+                stereo.left, stereo.right = np.zeros_like(stereo.left), np.zeros_like(stereo.right)
             if imaging is not None:
                 rate = self._camera_rate(rig.left_camera) if imaging.params.motion_blur else None
                 exposure_s, gain = imaging.exposure_s, imaging.gain

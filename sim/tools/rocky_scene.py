@@ -52,7 +52,7 @@ class RockyScene:
 
     def __init__(self, seed: int = 5, rocks: int | None = None, size_m: float = 20.0, scene: str = "rocky"):
         keys = SCENES[scene]
-        rock_keys = {**keys["rocks"], "clearance_m": 0.0} | ({} if rocks is None else {"count": rocks})
+        rock_keys = keys["rocks"] | ({} if rocks is None else {"count": rocks})
         cfg = TerrainConfig.model_validate({**keys, "size_m": size_m, "rocks": rock_keys, "texture": {"size_px": 1024}})
         self.terrain = generate_terrain(cfg, np.random.default_rng(seed), [((0.0, 0.0), 0.1)])
         root = mjcf.RootElement(model="rocky")

@@ -37,6 +37,15 @@ from dm_control import mjcf
 from scipy.spatial import ConvexHull, cKDTree
 
 from sim.scenario import LightRealism, TerrainConfig
+from sim.world.lander import (
+    LANDER_DECK_HALF,
+    LANDER_DECK_Z,
+    LANDER_FOOT_RADIUS,
+    LANDER_FOOT_XY,
+    LANDER_LEG_RADIUS,
+    LANDER_PAD_BLEND_M,
+    LANDER_PAD_RADIUS,
+)
 from sim.world.markers import (
     MARKER_THICKNESS_M,
     QUIET_CELLS,
@@ -48,17 +57,6 @@ from sim.world.terrain_tiles import MAX_TILED_CELLS, add_terrain_tiles
 from slam.lie import yaw_quat
 
 HFIELD_BASE_M = 1.0  # depth of MuJoCo's hfield box below the lowest terrain point
-MAX_GRID_POINTS = 4097  # per side; finer grids do not fit MuJoCo (or memory) sensibly
-
-# Lander geometry (body frame: origin on the flattened ground at the lander centre).
-LANDER_DECK_HALF = (0.8, 0.8, 0.3)  # deck box half extents
-LANDER_DECK_Z = 1.0  # deck centre height
-LANDER_FOOT_XY = 1.1  # footpad centres at (+-1.1, +-1.1): 2.5 m wide with the pads
-LANDER_FOOT_RADIUS = 0.15
-LANDER_LEG_RADIUS = 0.05
-LANDER_RADIUS = 1.8  # footprint circle, pads included
-LANDER_PAD_RADIUS = 2.2  # terrain is flat under the lander out to here ...
-LANDER_PAD_BLEND_M = 1.5  # ... and blends back to the natural terrain over this width
 TAG_PANEL_MARGIN_M = 0.05  # backing plate around the tag's quiet zone ...
 TAG_PANEL_HALF_THICKNESS_M = 0.01  # ... on the deck's +x face
 
@@ -402,12 +400,7 @@ def generate_terrain(cfg: TerrainConfig, rng: np.random.Generator,
     """
     preset = PRESETS[cfg.preset]
     rng_rough, rng_craters, rng_rocks, rng_albedo = rng.spawn(4)
-    n = max(2, round(cfg.size_m / cfg.resolution_m)) + 1
-    if n > MAX_GRID_POINTS:
-        raise TerrainError(
-            f"terrain.size_m={cfg.size_m:g} at resolution_m={cfg.resolution_m:g} needs {n} x {n} heights; "
-            f"at most {MAX_GRID_POINTS} per side: raise resolution_m to >= {cfg.size_m / (MAX_GRID_POINTS - 1):.3g}"
-        )
+    n = cfg.grid_points()
     grid = np.linspace(-cfg.size_m / 2, cfg.size_m / 2, n)
     X, Y = np.meshgrid(grid, grid)
 
@@ -415,14 +408,7 @@ def generate_terrain(cfg: TerrainConfig, rng: np.random.Generator,
     slope = math.tan(math.radians(cfg.slope.gradient_deg))
     direction = math.radians(cfg.slope.direction_deg)
     h += slope * (X * math.cos(direction) + Y * math.sin(direction))
-    discs = [(tuple(map(float, xy)), float(r)) for xy, r in keep_clear]
-    if cfg.lander is not None:
-        if max(map(abs, cfg.lander.xy)) > cfg.size_m / 2 - LANDER_PAD_RADIUS:
-            raise TerrainError(
-                f"terrain.lander.xy={list(cfg.lander.xy)} must lie within {cfg.size_m / 2 - LANDER_PAD_RADIUS:g} m "
-                f"of the centre in x and y (its pad is {LANDER_PAD_RADIUS:g} m in radius)"
-            )
-        discs.append((tuple(cfg.lander.xy), LANDER_RADIUS + cfg.rocks.clearance_m))
+    discs = [(tuple(map(float, xy)), float(r)) for xy, r in [*keep_clear, *cfg.lander_keep_clear()]]
     craters = _add_craters(h, grid, cfg, rng_craters, discs)
     for ridge in cfg.ridges:
         dist = _segment_distance(X, Y, np.array(ridge.start_xy, float), np.array(ridge.end_xy, float))
