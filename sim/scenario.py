@@ -476,11 +476,19 @@ class MappingConfig(StrictModel):
     submap_distance_m: PositiveFloat = slam_field(
         SlamParam(SubmapParams, "max_distance_m"), description="new submap after this distance in the current one (thesis: 3.5 or 7 m)"
     )
-    point_resolution_m: PositiveFloat = slam_field(
-        SlamParam(SubmapParams, "point_resolution_m"), description="submap point cloud voxel filter (thesis 5.1.2)"
+    point_resolution_m: float = slam_field(
+        SlamParam(SubmapParams, "point_resolution_m"),
+        ge=0.005,
+        le=1.0,
+        description="submap point cloud voxel filter (thesis 5.1.2)",
+        json_schema_extra={"why": "stereo depth is no finer than about 1 cm at 1 m; finer cells only multiply the points"},
     )
-    voxel_resolution_m: PositiveFloat = slam_field(
-        SlamParam(SubmapParams, "voxel_resolution_m"), description="submap occupancy voxels (thesis 5.1.2)"
+    voxel_resolution_m: float = slam_field(
+        SlamParam(SubmapParams, "voxel_resolution_m"),
+        ge=0.01,
+        le=2.0,
+        description="submap occupancy voxels (thesis 5.1.2)",
+        json_schema_extra={"why": "voxel keys pack 21 bits per axis (slam/voxels.py): 1 cm cells span 20 km"},
     )
     max_depth_error_m: PositiveFloat = slam_field(
         SlamParam(SubmapParams, "max_depth_error_m"),
@@ -948,6 +956,15 @@ FaultConfig = Annotated[
 FAULT_SHORT_KEYS = {"kind": "type", "at_s": "start_s"}
 
 
+def control_ticks(control_rate_hz: float, rate_hz: float) -> int | None:
+    """Control ticks per sample of a sensor at ``rate_hz`` (sensors sample on the control tick); None when the
+    rate does not divide the control rate."""
+    ticks = control_rate_hz / rate_hz
+    if abs(ticks - round(ticks)) > 1e-6 * ticks or round(ticks) < 1:
+        return None
+    return round(ticks)
+
+
 class Scenario(StrictModel):
     name: str = Field(..., pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
@@ -1047,6 +1064,13 @@ class Scenario(StrictModel):
                 "physics.control_rate_hz must divide 1/physics.timestep_s "
                 f"(got {self.physics.control_rate_hz:g} Hz at {self.physics.timestep_s:g} s)"
             )
+        for robot in self.robots:
+            for what, rate in [("camera", robot.camera.rate_hz), ("imu", robot.imu.rate_hz), ("wheel_odometry", robot.wheel_odometry.rate_hz)]:
+                if control_ticks(self.physics.control_rate_hz, rate) is None:
+                    raise ValueError(
+                        f"robot {robot.name}: {what}.rate_hz {rate:g} Hz must divide physics.control_rate_hz "
+                        f"({self.physics.control_rate_hz:g} Hz): sensors sample on the control tick"
+                    )
         return self
 
     @model_validator(mode="after")
@@ -1197,7 +1221,10 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]
             value = safe_yaml.load(text)
         except safe_yaml.YamlError as exc:
             raise ScenarioError("--set", [f"{_shown(item)}: {exc}"]) from None
-        _set(raw, key.strip().split("."), value, [])
+        parts = key.strip().split(".")
+        if not all(parts):
+            raise ScenarioError("--set", [f"{_shown(item)}: expected dotted.key=value, the key {key.strip()!r} has an empty part"])
+        _set(raw, parts, value, [])
     return raw
 
 

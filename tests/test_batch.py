@@ -31,8 +31,8 @@ SLOW_FAST = [
     {"label": "slow", "set": {"robots.*.route.speed_mps": 0.2}},
     {"label": "fast", "set": {"robots.*.route.speed_mps": 0.5}},
 ]
-# valid for the schema, but the run cannot be set up: 7 Hz does not divide the 200 Hz control tick
-BROKEN = {"label": "broken", "set": {"robots.rover.camera.rate_hz": 7}}
+# valid for the schema, but the run cannot be set up: the random rock placement finds no room for 2000 large rocks
+BROKEN = {"label": "broken", "set": {"terrain.rocks.count": 2000, "terrain.rocks.diameter_m": [2.5, 3.0]}}
 
 
 def write_batch(folder: Path, **fields) -> Path:
@@ -178,7 +178,7 @@ def test_pool_batch_records_a_failing_run_summarises_and_resumes_without_rerunni
             assert metrics(out / run["folder"])["seed"] == seed
     for seed in (1, 2):
         run = runs[f"broken/seed{seed}"]
-        assert run["status"] == "failed" and "must divide physics.control_rate_hz" in run["error"]
+        assert run["status"] == "failed" and "placed only" in run["error"] and "of 2000 rocks" in run["error"]
         assert (out / run["folder"] / "error.txt").is_file()
 
     tidy = pd.read_parquet(out / "runs.parquet")

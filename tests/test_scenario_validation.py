@@ -70,6 +70,8 @@ def test_validate_exits_2_without_a_traceback(name):
         ("description=!!python/object/apply:os.system [echo hi]", "could not determine a constructor"),
         ("description={a: 1, a: 2}", "duplicate key 'a'"),
         ("robots.0.route.speed_mps=true", "true and false are no numbers"),
+        ("terrain..size_m=20", "has an empty part"),
+        ("faults=[{kind: dies, robot: lru9, at_s: 1}]", "no robot named 'lru9'"),
     ],
 )
 def test_bad_override_exits_2_naming_it(override, expect):
@@ -77,7 +79,7 @@ def test_bad_override_exits_2_naming_it(override, expect):
     output = " ".join(result.output.split())  # rich wraps long lines
     assert result.exit_code == 2, result.output
     assert "Traceback" not in output and expect in output
-    if "robots" not in override:
+    if "robot" not in override:  # a syntax error names the override; a schema error names the key
         assert repr(override) in output
 
 

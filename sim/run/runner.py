@@ -37,7 +37,7 @@ from sim.run.memory import MemoryTrace
 from sim.run.onboard import OnboardStack, body_camera_transform, calibration
 from sim.run.recording import Recorder
 from sim.run.series import LogHistogram, Rows
-from sim.scenario import Scenario
+from sim.scenario import Scenario, control_ticks
 from sim.seeding import RandomStreams
 from sim.world.calibration_errors import believed_body_camera, draw_calibration_errors, perturb_cameras
 from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
@@ -260,14 +260,11 @@ class Run:
         data.time = 0.0
         mujoco.mj_forward(model, data)
 
-    def _every(self, rate_hz: float, what: str) -> int:
-        ticks = self.scenario.physics.control_rate_hz / rate_hz
-        if abs(ticks - round(ticks)) > 1e-6 * ticks or round(ticks) < 1:
-            raise ValueError(
-                f"{what} rate {rate_hz:g} Hz must divide physics.control_rate_hz "
-                f"({self.scenario.physics.control_rate_hz:g} Hz)"
-            )
-        return round(ticks)
+    def _every(self, rate_hz: float) -> int:
+        """Control ticks per sample (the scenario checks that the rate divides the control rate)."""
+        ticks = control_ticks(self.scenario.physics.control_rate_hz, rate_hz)
+        assert ticks is not None, rate_hz
+        return ticks
 
     def _runtime(self, robot: Robot) -> RobotRuntime:
         cfg = robot.cfg
@@ -303,13 +300,13 @@ class Run:
             lane=lane,
             imu=imu,
             inertial=InertialAverager(self.world.model, robot.accel_sensor, robot.gyro_sensor),
-            imu_every=self._every(cfg.imu.rate_hz, f"robots.{robot.name}.imu"),
-            camera_every=self._every(cfg.camera.rate_hz, f"robots.{robot.name}.camera"),
+            imu_every=self._every(cfg.imu.rate_hz),
+            camera_every=self._every(cfg.camera.rate_hz),
             renderers=renderers,
             imaging=imaging,
             matchers=matchers,
             odometry=odometry,
-            odom_every=self._every(cfg.wheel_odometry.rate_hz, f"robots.{robot.name}.wheel_odometry"),
+            odom_every=self._every(cfg.wheel_odometry.rate_hz),
             onboard=onboard,
             faults=condition_faults(self.scenario, robot.name),
         )
@@ -333,6 +330,8 @@ class Run:
 
     def _die(self, runtime: RobotRuntime, faults: ConditionFaults, at_s: float):
         yield self.env.timeout(max(0.0, at_s - self.env.now))
+        if runtime.robot.dead:  # a second ``dies`` entry
+            return
         faults.died_s = self.env.now
         runtime.robot.fail(self.env.now)
         runtime.lane.halt()
