@@ -27,7 +27,7 @@ import copy
 import math
 import re
 from enum import StrEnum
-from typing import Annotated, Any
+from typing import Annotated, Any, ClassVar
 
 from pydantic import (
     BaseModel,
@@ -138,13 +138,23 @@ class LossConfig(_Strict):
     ``p_bad_to_good = 1 / mean_burst_fragments`` and
     ``p_good_to_bad = rate * p_bad_to_good / (1 - rate)``."""
 
-    model: LossModel = LossModel.NONE
-    rate: Annotated[float, Field(ge=0, lt=1)] = 0.0
-    mean_burst_fragments: Annotated[float, Field(ge=1)] | None = None
-    p_good_to_bad: Probability | None = None
-    p_bad_to_good: Annotated[float, Field(gt=0, le=1)] | None = None
-    loss_good: Probability = 0.0
-    loss_bad: Probability = 1.0
+    model: LossModel = Field(
+        LossModel.NONE, description="none, bernoulli (independent per fragment) or gilbert_elliott (bursts: a good and a bad state)"
+    )
+    rate: Annotated[float, Field(ge=0, lt=1)] = Field(
+        0.0, description="bernoulli: probability that a fragment is lost; gilbert_elliott short form: long-run loss"
+    )
+    mean_burst_fragments: Annotated[float, Field(ge=1)] | None = Field(
+        None, description="gilbert_elliott short form: mean run of consecutive lost fragments"
+    )
+    p_good_to_bad: Probability | None = Field(
+        None, description="gilbert_elliott: per-fragment probability of switching from the good to the bad state"
+    )
+    p_bad_to_good: Annotated[float, Field(gt=0, le=1)] | None = Field(
+        None, description="gilbert_elliott: per-fragment probability of switching back to the good state"
+    )
+    loss_good: Probability = Field(0.0, description="gilbert_elliott: loss probability in the good state")
+    loss_bad: Probability = Field(1.0, description="gilbert_elliott: loss probability in the bad state")
 
     @model_validator(mode="after")
     def _complete(self) -> LossConfig:
@@ -189,19 +199,19 @@ class LinkConfig(_Strict):
     queue) and then ``latency_s`` plus a uniform extra delay in ``[0, jitter_s]`` to
     propagate; a link never reorders (an arrival waits for the one before it)."""
 
-    enabled: bool = True
-    latency_s: Delay = 0.002
-    jitter_s: Delay = 0.0
-    bandwidth_bps: Bandwidth = 20e6
-    mtu_bytes: int = Field(1400, ge=16, le=1_000_000)
-    loss: LossConfig = LossConfig()
-    range_m: PositiveFloat | None = Field(None, description="up only while the nodes are this close (None: any distance)")
+    enabled: bool = Field(True, description="false: the link is down for the whole run")
+    latency_s: Delay = Field(0.002, description="one-way propagation delay of each fragment")
+    jitter_s: Delay = Field(0.0, description="extra delay per fragment, uniform in [0, jitter_s]")
+    bandwidth_bps: Bandwidth = Field(20e6, description="serialization rate (bit/s)")
+    mtu_bytes: int = Field(1400, ge=16, le=1_000_000, description="largest fragment: a message of n bytes travels as ceil(n / mtu_bytes) fragments")
+    loss: LossConfig = Field(LossConfig(), description="fragment loss")
+    range_m: PositiveFloat | None = Field(None, description="up only while the nodes are this close (null: any distance)")
     line_of_sight: bool = Field(False, description="up only while the line-of-sight callback says so")
     windows: list[Window] | None = Field(
-        None, description="up only inside these [start_s, end_s) windows (None: always; []: never)"
+        None, description="up only inside these [start_s, end_s) windows (null: always; []: never)"
     )
     ack_timeout_s: PositiveFloat | None = Field(
-        None, description="reliable delivery: retransmit after this (None: from both directions' latencies)"
+        None, description="reliable delivery: retransmit after this (null: from both directions' latencies)"
     )
 
     _w = field_validator("windows")(lambda v: None if v is None else [_check_window(w) for w in v])
@@ -210,6 +220,16 @@ class LinkConfig(_Strict):
 class _OnlySet(_Strict):
     """Overrides: a field applies only if it was given (so ``range_m: null`` can mean
     'no range limit' rather than 'not overridden'); dumps only what was given."""
+
+    #: Fields whose ``null`` is a value (the others' ``None`` only means "not given").
+    NULLABLE: ClassVar[frozenset[str]] = frozenset()
+
+    @model_validator(mode="after")
+    def _no_null_values(self) -> _OnlySet:
+        bad = sorted(k for k in self.model_fields_set if getattr(self, k) is None and k not in self.NULLABLE)
+        if bad:
+            raise ValueError(f"{', '.join(bad)}: null is no value here (leave the key out to keep the default)")
+        return self
 
     @model_serializer(mode="wrap")
     def _dump_set_fields(self, handler):
@@ -223,16 +243,18 @@ class _OnlySet(_Strict):
 class LinkOverride(_OnlySet):
     """Any subset of :class:`LinkConfig`'s fields for the links a key names."""
 
-    enabled: bool | None = None
-    latency_s: Delay | None = None
-    jitter_s: Delay | None = None
-    bandwidth_bps: Bandwidth | None = None
-    mtu_bytes: int | None = Field(None, ge=16, le=1_000_000)
-    loss: LossConfig | None = None
-    range_m: PositiveFloat | None = None
-    line_of_sight: bool | None = None
-    windows: list[Window] | None = None
-    ack_timeout_s: PositiveFloat | None = None
+    NULLABLE: ClassVar[frozenset[str]] = frozenset({"range_m", "windows", "ack_timeout_s"})
+
+    enabled: bool | None = Field(None, description="overrides defaults.enabled")
+    latency_s: Delay | None = Field(None, description="overrides defaults.latency_s")
+    jitter_s: Delay | None = Field(None, description="overrides defaults.jitter_s")
+    bandwidth_bps: Bandwidth | None = Field(None, description="overrides defaults.bandwidth_bps")
+    mtu_bytes: int | None = Field(None, ge=16, le=1_000_000, description="overrides defaults.mtu_bytes")
+    loss: LossConfig | None = Field(None, description="replaces defaults.loss as a whole")
+    range_m: PositiveFloat | None = Field(None, description="overrides defaults.range_m (null: no range limit)")
+    line_of_sight: bool | None = Field(None, description="overrides defaults.line_of_sight")
+    windows: list[Window] | None = Field(None, description="overrides defaults.windows (null: always up; []: never)")
+    ack_timeout_s: PositiveFloat | None = Field(None, description="overrides defaults.ack_timeout_s (null: from both directions' latencies)")
 
     _w = field_validator("windows")(lambda v: None if v is None else [_check_window(w) for w in v])
 
@@ -247,21 +269,25 @@ class KindPolicy(_Strict):
     kind one node may hold for sending (waiting for a route, queued on a link, or
     awaiting an ack)."""
 
-    priority: int = Field(5, ge=0, le=15)
-    delivery: Delivery = Delivery.BEST_EFFORT
+    priority: int = Field(5, ge=0, le=15, description="0 is served first: a link always sends the most urgent waiting fragment")
+    delivery: Delivery = Field(Delivery.BEST_EFFORT, description="best_effort: one try per hop; reliable: per-hop acks and retransmission")
     max_retries: int = Field(10, ge=0, le=1000, description="reliable: retransmission rounds per hop")
-    outage: OutagePolicy = OutagePolicy.STORE_AND_FORWARD
-    max_queued: int = Field(1000, ge=1, le=1_000_000)
-    when_full: WhenFull = WhenFull.DROP_NEWEST
+    outage: OutagePolicy = Field(OutagePolicy.STORE_AND_FORWARD, description="while no route is up: store_and_forward (held at the node) or drop")
+    max_queued: int = Field(
+        1000, ge=1, le=1_000_000, description="messages of this kind one node may hold for sending (waiting, queued on a link or awaiting an ack)"
+    )
+    when_full: WhenFull = Field(
+        WhenFull.DROP_NEWEST, description="at max_queued: drop_newest drops the arriving message, drop_oldest the oldest waiting one"
+    )
 
 
 class KindOverride(_OnlySet):
-    priority: int | None = Field(None, ge=0, le=15)
-    delivery: Delivery | None = None
-    max_retries: int | None = Field(None, ge=0, le=1000)
-    outage: OutagePolicy | None = None
-    max_queued: int | None = Field(None, ge=1, le=1_000_000)
-    when_full: WhenFull | None = None
+    priority: int | None = Field(None, ge=0, le=15, description="overrides kind_defaults.priority")
+    delivery: Delivery | None = Field(None, description="overrides kind_defaults.delivery")
+    max_retries: int | None = Field(None, ge=0, le=1000, description="overrides kind_defaults.max_retries")
+    outage: OutagePolicy | None = Field(None, description="overrides kind_defaults.outage")
+    max_queued: int | None = Field(None, ge=1, le=1_000_000, description="overrides kind_defaults.max_queued")
+    when_full: WhenFull | None = Field(None, description="overrides kind_defaults.when_full")
 
 
 # --------------------------------------------------------------------------- availability
@@ -271,10 +297,10 @@ class OutageConfig(_Strict):
     """All named links down in ``[start_s, end_s)``. ``nodes``: every link to or from
     these nodes; ``links``: keys like ``links:`` uses; both empty: the whole network."""
 
-    start_s: NonNegFloat
-    end_s: PositiveFloat
-    nodes: list[Annotated[str, Field(pattern=NODE_PATTERN)]] = []
-    links: list[str] = []
+    start_s: NonNegFloat = Field(..., description="the links go down at this simulated time")
+    end_s: PositiveFloat = Field(..., description="the links come back up at this simulated time")
+    nodes: list[Annotated[str, Field(pattern=NODE_PATTERN)]] = Field([], description="every link to or from these nodes")
+    links: list[str] = Field([], description="link keys as comms.links uses them; nodes and links both empty: the whole network")
 
     @model_validator(mode="after")
     def _order(self) -> OutageConfig:
@@ -290,11 +316,11 @@ class RandomOutageConfig(_Strict):
     named links (same scoping as :class:`OutageConfig`) down together for an
     exponential time with mean ``mean_down_s``, from ``start_s`` on. Seeded."""
 
-    mean_up_s: OutageMean
-    mean_down_s: OutageMean
-    start_s: NonNegFloat = 0.0
-    nodes: list[Annotated[str, Field(pattern=NODE_PATTERN)]] = []
-    links: list[str] = []
+    mean_up_s: OutageMean = Field(..., description="mean of the exponential time up between outages")
+    mean_down_s: OutageMean = Field(..., description="mean of the exponential length of an outage")
+    start_s: NonNegFloat = Field(0.0, description="the first up period starts at this simulated time")
+    nodes: list[Annotated[str, Field(pattern=NODE_PATTERN)]] = Field([], description="every link to or from these nodes")
+    links: list[str] = Field([], description="link keys as comms.links uses them; nodes and links both empty: the whole network")
 
     @field_validator("links")
     @classmethod
@@ -381,19 +407,25 @@ def _deep_merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
 class CommsConfig(_Strict):
     """The scenario's ``comms:`` section (see the module docstring)."""
 
-    enabled: bool = Field(True, description="False: every link is down, robots share nothing")
-    preset: Preset | None = Preset.LAB_WIFI
-    defaults: LinkConfig = LinkConfig()
-    links: dict[str, LinkOverride] = {}
-    kind_defaults: KindPolicy = KindPolicy()
-    kinds: dict[str, KindOverride] = {}
-    outages: list[OutageConfig] = []
-    random_outages: list[RandomOutageConfig] = []
+    enabled: bool = Field(True, description="false: every link is down, robots share nothing")
+    preset: Preset | None = Field(
+        Preset.LAB_WIFI, description="channel merged under this section: lab_wifi, spacebotcamp (thesis 9.2) or lunar_surface_uhf; null: no preset"
+    )
+    defaults: LinkConfig = Field(LinkConfig(), description="every link direction before the links overrides (merged over the preset's)")
+    links: dict[str, LinkOverride] = Field(
+        {}, description="overrides keyed 'a->b' (one direction) or 'a<->b' (both), '*' any node; keys naming more nodes apply later"
+    )
+    kind_defaults: KindPolicy = Field(KindPolicy(), description="delivery policy of message kinds that kinds does not name")
+    kinds: dict[str, KindOverride] = Field(
+        {}, description="per message kind, overrides of kind_defaults (built in: pose, detection, frame_switch, loop_closure, submap; thesis 3.3)"
+    )
+    outages: list[OutageConfig] = Field([], description="scheduled outages: named links down in [start_s, end_s)")
+    random_outages: list[RandomOutageConfig] = Field([], description="outages at random times (seeded)")
     ground_station: str | None = Field(
         None, pattern=NODE_PATTERN, description="an Earth-side node added to the network; it has no position"
     )
     uplink_windows: list[Window] | None = Field(
-        None, description="links from the ground station are up only in these windows (None: always; []: never)"
+        None, description="links from the ground station are up only in these windows (null: always; []: never)"
     )
     relays: list[Annotated[str, Field(pattern=NODE_PATTERN)]] = Field(
         [], description="nodes that forward messages for others over links that are up"

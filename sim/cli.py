@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime
+import importlib.metadata
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -25,6 +26,21 @@ SetOption = Annotated[
     list[str] | None,
     typer.Option("--set", help="override a scenario key: dotted.key=value (repeatable; robots by name: robots.lru1.route.speed_mps=0.4)"),
 ]
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"marsyard {importlib.metadata.version('marsyard')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_print_version, is_eager=True, help="print the installed version and exit")
+    ] = False,
+) -> None:
+    """Options before the command (``marsyard --version``)."""
 
 
 def _load(scenario: Path, overrides: list[str]):

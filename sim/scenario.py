@@ -186,8 +186,8 @@ def slam_kwargs(target: Callable[..., Any], *sections: BaseModel) -> dict[str, A
 class CraterConfig(StrictModel):
     """Bowl-shaped craters with raised rims (depth and rim height relative to radius)."""
 
-    count: int = Field(6, ge=0, le=500)
-    radius_m: tuple[PositiveFloat, PositiveFloat] = (1.0, 4.0)
+    count: int = Field(6, ge=0, le=500, description="number of craters (no centre inside a keep-clear disc)")
+    radius_m: tuple[PositiveFloat, PositiveFloat] = Field((1.0, 4.0), description="[min, max] of the rim crest radius, drawn uniformly")
     depth_ratio: float = Field(0.2, gt=0, le=1.0, description="depth / radius")
     rim_height_ratio: float = Field(0.06, ge=0, le=0.5, description="rim height / radius")
 
@@ -197,26 +197,26 @@ class CraterConfig(StrictModel):
 class SlopeConfig(StrictModel):
     """A global planar tilt of the heightfield."""
 
-    gradient_deg: float = Field(0.0, ge=0, le=30)
-    direction_deg: float = 0.0
+    gradient_deg: float = Field(0.0, ge=0, le=30, description="inclination of the tilted plane (0: level)")
+    direction_deg: float = Field(0.0, description="direction in which the ground rises, counter-clockwise from +x")
 
 
 class RidgeConfig(StrictModel):
     """A straight ridge (positive height) or trench/ramp cut (negative height)."""
 
-    start_xy: XY
-    end_xy: XY
-    height_m: float = Field(..., ge=-5, le=5)
-    width_m: PositiveFloat = 2.0
+    start_xy: XY = Field(..., description="[x, y] of one end of the centre line (m, origin at the terrain centre)")
+    end_xy: XY = Field(..., description="[x, y] of the other end of the centre line (m)")
+    height_m: float = Field(..., ge=-5, le=5, description="crest height (negative: a trench or ramp cut)")
+    width_m: PositiveFloat = Field(2.0, description="full width of the cos^2 cross-section")
 
 
 class RockConfig(StrictModel):
     """Rocks as separate geoms; diameters follow a truncated power law
     N(>D) ~ D^-exponent, the usual model of planetary rock size-frequency."""
 
-    count: int = Field(25, ge=0, le=2000)
-    diameter_m: tuple[RockDiameter, RockDiameter] = (0.15, 0.8)
-    power_law_exponent: float = Field(2.5, gt=0, le=6)
+    count: int = Field(25, ge=0, le=2000, description="number of rocks")
+    diameter_m: tuple[RockDiameter, RockDiameter] = Field((0.15, 0.8), description="[min, max] diameter of the truncated power law")
+    power_law_exponent: float = Field(2.5, gt=0, le=6, description="k of N(>D) ~ D^-k: larger makes small rocks more frequent")
     clearance_m: float = Field(
         2.0,
         ge=0.1,
@@ -228,36 +228,40 @@ class RockConfig(StrictModel):
 
 
 class LanderConfig(StrictModel):
-    xy: XY = (0.0, 0.0)
-    yaw_deg: float = 0.0
+    xy: XY = Field((0.0, 0.0), description="centre of the lander (m, origin at the terrain centre)")
+    yaw_deg: float = Field(0.0, description="heading of the lander, counter-clockwise from +x; its tag faces along the lander's +x")
     tag_id: int = Field(0, ge=0, le=586, description="AprilTag 36h11 id of the lander's marker")
-    tag_size_m: PositiveFloat = 0.4
+    tag_size_m: PositiveFloat = Field(0.4, description="edge of the tag's black square")
 
 
 class TextureConfig(StrictModel):
     """Procedural regolith albedo: multi-octave noise from the seed."""
 
-    size_px: int = Field(2048, ge=256, le=8192)
+    size_px: int = Field(2048, ge=256, le=8192, description="side of the square, tileable albedo texture in texels; it repeats to cover the terrain")
     texel_m: float = Field(
         0.02, ge=0.001, le=1.0, description="ground size of one texel", json_schema_extra={"why": "cameras see no finer, SGBM matches no coarser"}
     )
-    contrast: float = Field(0.35, gt=0, le=1.0)
+    contrast: float = Field(0.35, gt=0, le=1.0, description="std of the albedo relative to its mean")
 
 
 class TerrainConfig(StrictModel):
-    preset: Literal["moon", "mars", "etna"] = "moon"
+    preset: Literal["moon", "mars", "etna"] = Field("moon", description="site look: albedo, colours, sun and sky (etna also 2.5 x roughness_m)")
     size_m: float = Field(40.0, ge=5, le=500, description="side length of the square terrain")
     resolution_m: float = Field(0.1, ge=0.02, le=1.0, description="heightfield grid spacing")
     roughness_m: float = Field(
         0.05, ge=0, le=2, description="amplitude of fractal surface noise", json_schema_extra={"why": "larger relief: craters, ridges, slope"}
     )
-    roughness_wavelength_m: PositiveFloat = 4.0
-    craters: CraterConfig = CraterConfig()
-    slope: SlopeConfig = SlopeConfig()
-    ridges: list[RidgeConfig] = []
-    rocks: RockConfig = RockConfig()
-    lander: LanderConfig | None = None
-    texture: TextureConfig = TextureConfig()
+    roughness_wavelength_m: PositiveFloat = Field(
+        4.0, description="longest wavelength of the fractal roughness; octaves halve down to two grid cells"
+    )
+    craters: CraterConfig = Field(CraterConfig(), description="bowl-shaped craters with raised rims")
+    slope: SlopeConfig = Field(SlopeConfig(), description="a global planar tilt of the terrain")
+    ridges: list[RidgeConfig] = Field([], description="straight ridges or trenches (none by default)")
+    rocks: RockConfig = Field(RockConfig(), description="rocks as separate geoms, kept off the robots' starts and routes")
+    lander: LanderConfig | None = Field(
+        None, description="a lander on a flattened pad with an AprilTag, a static landmark (thesis 6.2); null: no lander"
+    )
+    texture: TextureConfig = Field(TextureConfig(), description="procedural regolith albedo texture")
 
     def grid_points(self) -> int:
         """Heights per side of the terrain grid."""
@@ -304,16 +308,18 @@ def _per_preset(attribute: str) -> str:
 class CameraConfig(StrictModel):
     """Rendered rectified pinhole stereo. ``hfov_deg`` overrides the preset's."""
 
-    width: int = Field(320, ge=32, le=2048)
-    height: int = Field(240, ge=32, le=2048)
-    rate_hz: float = Field(5.0, gt=0, le=30)
-    color: Literal["grey", "rgb"] = "grey"
-    hfov_deg: float | None = Field(None, gt=10, lt=170)
+    width: int = Field(320, ge=32, le=2048, description="image width (px)")
+    height: int = Field(240, ge=32, le=2048, description="image height (px)")
+    rate_hz: float = Field(5.0, gt=0, le=30, description="stereo frame rate; must divide physics.control_rate_hz (thesis 7.1: 8 to 14.6 Hz)")
+    color: Literal["grey", "rgb"] = Field("grey", description="rendered images: grey (one channel, as the thesis's rovers, 7.1) or rgb")
+    hfov_deg: float | None = Field(
+        None, gt=10, lt=170, description=f"horizontal field of view (null: the preset's, {_per_preset('default_hfov_deg')})"
+    )
     depth_ground_truth_every: int = Field(
         1, ge=0, description="render ground-truth depth every n-th frame (0: never)"
     )
-    znear_m: PositiveFloat = 0.05
-    zfar_m: PositiveFloat = 60.0
+    znear_m: PositiveFloat = Field(0.05, description="near clipping plane of the renderer")
+    zfar_m: PositiveFloat = Field(60.0, description="far clipping plane; ground-truth depth beyond it is inf")
 
     @model_validator(mode="after")
     def _check_clipping(self) -> CameraConfig:
@@ -326,17 +332,17 @@ class ImuConfig(StrictModel):
     preset: Literal["xsens_mti10", "adis16407"] | None = Field(
         None, description=f"default per preset: {_per_preset('default_imu_preset')} (thesis 7.1)"
     )
-    rate_hz: float = Field(200.0, gt=0, le=1000)
+    rate_hz: float = Field(200.0, gt=0, le=1000, description="IMU sample rate; must divide physics.control_rate_hz")
 
 
 class WheelOdometryConfig(StrictModel):
-    rate_hz: float = Field(50.0, gt=0, le=500)
-    speed_noise_std_mps: NonNegFloat = 0.01
-    yaw_rate_noise_std_rps: NonNegFloat = 0.01
+    rate_hz: float = Field(50.0, gt=0, le=500, description="wheel odometry sample rate; must divide physics.control_rate_hz")
+    speed_noise_std_mps: NonNegFloat = Field(0.01, description="white noise std on the body velocities v_x and v_y")
+    yaw_rate_noise_std_rps: NonNegFloat = Field(0.01, description="white noise std on the yaw rate (rad/s)")
 
 
 class WaypointConfig(StrictModel):
-    xy: XY
+    xy: XY = Field(..., description="waypoint position (m, origin at the terrain centre)")
     altitude_m: Altitude | None = Field(
         None, description="hexacopter only: height above the terrain under the waypoint"
     )
@@ -344,10 +350,12 @@ class WaypointConfig(StrictModel):
 
 
 class RouteConfig(StrictModel):
-    speed_mps: PositiveFloat = 0.3
-    tolerance_m: PositiveFloat = 0.35
-    waypoints: list[WaypointConfig] = []
-    scan_duration_s: PositiveFloat = 20.0
+    speed_mps: PositiveFloat = Field(0.3, description=f"travel speed along each leg (at most per preset: {_per_preset('max_speed_mps')})")
+    tolerance_m: PositiveFloat = Field(0.35, description="a waypoint counts as reached within this horizontal distance")
+    waypoints: list[WaypointConfig] = Field(
+        [], description="the waypoints in order, short forms [x, y] and [x, y, altitude_m]; none: the robot stays at its start"
+    )
+    scan_duration_s: PositiveFloat = Field(20.0, description="length of the 360 deg turn at a waypoint with scan: true")
     scan_tilt_deg: float | None = Field(
         None, ge=-45, le=90, description="rover head tilt during scans (positive looks down; default: the preset's 25 deg)"
     )
@@ -381,8 +389,8 @@ class RouteConfig(StrictModel):
 
 
 class StartConfig(StrictModel):
-    xy: XY = (0.0, 0.0)
-    yaw_deg: float = 0.0
+    xy: XY = Field((0.0, 0.0), description="start position (m, origin at the terrain centre)")
+    yaw_deg: float = Field(0.0, description="start heading, counter-clockwise from +x")
 
 
 class ComputerConfig(StrictModel):
@@ -394,17 +402,19 @@ class ComputerConfig(StrictModel):
 
 
 class RobotConfig(StrictModel):
-    name: str = Field(..., pattern=NAME_PATTERN)
-    preset: Literal["lru", "lru_wide", "ardea"]
-    start: StartConfig = StartConfig()
+    name: str = Field(..., pattern=NAME_PATTERN, description="unique robot name, also its network node ('lander' is taken)")
+    preset: Literal["lru", "lru_wide", "ardea"] = Field(
+        ..., description="robot type (thesis 7.1): lru (rover, narrow stereo), lru_wide (rover, wide-angle stereo), ardea (hexacopter)"
+    )
+    start: StartConfig = Field(StartConfig(), description="start pose; the robot starts resting on the ground")
     tag_ids: list[Annotated[int, Field(ge=0, le=586)]] | None = Field(
         None, description="AprilTag 36h11 ids of the robot's markers (default: assigned from 1 up)"
     )
-    route: RouteConfig = RouteConfig()
-    camera: CameraConfig = CameraConfig()
-    imu: ImuConfig = ImuConfig()
-    wheel_odometry: WheelOdometryConfig = WheelOdometryConfig()
-    computer: ComputerConfig = ComputerConfig()
+    route: RouteConfig = Field(RouteConfig(), description="waypoints and how the robot drives or flies them")
+    camera: CameraConfig = Field(CameraConfig(), description="the rendered stereo cameras (every rig of the robot)")
+    imu: ImuConfig = Field(ImuConfig(), description="the inertial measurement unit")
+    wheel_odometry: WheelOdometryConfig = Field(WheelOdometryConfig(), description="wheel encoder odometry (rovers only)")
+    computer: ComputerConfig = Field(ComputerConfig(), description="the on-board computer that runs the robot's jobs")
 
     @property
     def marker_count(self) -> int:
@@ -420,7 +430,13 @@ class RobotConfig(StrictModel):
 
 
 class PhysicsConfig(StrictModel):
-    timestep_s: float = Field(0.001, ge=1e-4, le=0.01, json_schema_extra={"why": "MuJoCo steps the robots stably in 0.1-10 ms; finer only costs"})
+    timestep_s: float = Field(
+        0.001,
+        ge=1e-4,
+        le=0.01,
+        description="MuJoCo physics step",
+        json_schema_extra={"why": "MuJoCo steps the robots stably in 0.1-10 ms; finer only costs"},
+    )
     control_rate_hz: float = Field(
         200.0,
         ge=10,
@@ -452,23 +468,27 @@ class StageCosts(StrictModel):
 
 
 class ComputeConfig(StrictModel):
-    model: Literal["modeled", "measured"] = "modeled"
+    model: Literal["modeled", "measured"] = Field(
+        "modeled", description="modeled: a job takes its stage's cost from stages; measured: its wall time on this machine x measured_scale"
+    )
     measured_scale: PositiveFloat = Field(1.0, description="measured mode: wall time x this factor")
-    stages: StageCosts = StageCosts()
+    stages: StageCosts = Field(StageCosts(), description="modelled compute time per job stage (model: modeled)")
     max_queue: int = Field(2, ge=1, le=1000, description="real-time jobs waiting beyond this are dropped")
 
 
 class OutputConfig(StrictModel):
-    recording: bool = True
+    recording: bool = Field(True, description="write the rerun recording recording.rrd")
     recording_image_every: int = Field(5, ge=1, description="log every n-th camera frame to the recording")
-    recording_image_scale: float = Field(0.5, gt=0, le=1)
-    topdown_png: bool = True
+    recording_image_scale: float = Field(
+        0.5, gt=0, le=1, description="camera images go into the recording at this fraction of their width and height"
+    )
+    topdown_png: bool = Field(True, description="write the plots topdown.png, filter_error.png, slam.png and map_topdown.png")
 
 
 class MappingConfig(StrictModel):
     """Obstacle classification and submaps (thesis ch. 5); a new submap switches the filter's frame."""
 
-    enabled: bool = True
+    enabled: bool = Field(True, description="false: no map; the filter switches frames after slam.frame_switch_distance_m")
     submap_position_std_m: PositiveFloat = slam_field(
         SlamParam(SubmapParams, "max_position_std_m"),
         description="new submap when the filter's position std exceeds this (thesis 5.1.3: 0.1-0.2 m)",
@@ -554,7 +574,7 @@ class GraphConfig(StrictModel):
 class DetectionConfig(StrictModel):
     """AprilTag robot detections and landmark observations (thesis 6.2.1)."""
 
-    enabled: bool = True
+    enabled: bool = Field(True, description="detect the AprilTags of robots and the lander (needs slam.graph)")
     uncertainty: Literal["constant", "quadratic", "lut", "online", "lut_online"] = slam_field(
         SlamParam(AgentParams, "uncertainty"),
         description="eq. 8.1, eq. 8.2, or thesis 6.2.3: lookup table (assets/marker_lut, `marsyard marker-lut`), corner perturbation, both",
@@ -635,7 +655,7 @@ class HealthConfig(StrictModel):
 class SlamConfig(StrictModel):
     """The on-board estimation stack of every robot (thesis ch. 4)."""
 
-    enabled: bool = True
+    enabled: bool = Field(True, description="false: no on-board estimation at all")
     vo_rig: str | None = Field(None, description=f"stereo rig used for VO (default per preset: {_per_preset('default_vo_rig')})")
     wheel_odometry: bool = Field(True, description="robots with wheel encoders (the rovers) fuse wheel odometry as body-velocity updates")
     wheel_speed_std_mps: PositiveFloat = slam_field(
@@ -680,10 +700,10 @@ class SlamConfig(StrictModel):
     frame_switch_distance_m: PositiveFloat = Field(
         5.0, description="without mapping only: frame switch after this distance driven in the current frame"
     )
-    mapping: MappingConfig = MappingConfig()
-    graph: GraphConfig = GraphConfig()
-    detections: DetectionConfig = DetectionConfig()
-    matching: MatchingConfig = MatchingConfig()
+    mapping: MappingConfig = Field(MappingConfig(), description="obstacle classification and submaps (thesis ch. 5)")
+    graph: GraphConfig = Field(GraphConfig(), description="the multi-robot pose graph and the message exchange (thesis 4.2, 3.3)")
+    detections: DetectionConfig = Field(DetectionConfig(), description="AprilTag robot detections and landmark observations (thesis 6.2)")
+    matching: MatchingConfig = Field(MatchingConfig(), description="submap matching for loop closures (thesis 6.1)")
     initial_rest_s: PositiveFloat = Field(
         0.5,
         description="roll and pitch initialised from the mean accelerometer reading over this long before the route starts",
@@ -692,7 +712,7 @@ class SlamConfig(StrictModel):
         SlamParam(RestParams, "zero_velocity"),
         description="zero-velocity updates while the robot rests (slam/rest.py: IMU rest test, vetoed by motion commands, wheels and VO)",
     )
-    health: HealthConfig = HealthConfig()
+    health: HealthConfig = Field(HealthConfig(), description="when a robot's estimator calls itself degraded or lost")
 
 
 # --------------------------------------------------------------------------- realism
@@ -817,12 +837,20 @@ class RealismConfig(StrictModel):
     """How far the simulated world departs from the ideal one. ``profile`` sets every
     value (:data:`REALISM_PROFILES`); a key set in a section overrides its profile's."""
 
-    profile: Literal["ideal", "realistic", "harsh"] = "realistic"
-    camera: CameraRealism = CameraRealism()
-    calibration: CalibrationRealism = CalibrationRealism()
-    imu: ImuRealism = ImuRealism()
-    wheels: WheelRealism = WheelRealism()
-    light: LightRealism = LightRealism()
+    profile: Literal["ideal", "realistic", "harsh"] = Field(
+        "realistic",
+        description="ideal (no imperfections), realistic (tuned to the thesis's drift, 8.3) or harsh (doubled calibration, IMU and "
+        "wheel errors, shadows); it sets every key below that is left out or null",
+    )
+    camera: CameraRealism = Field(CameraRealism(), description="image formation of the cameras; a key left out or null takes the profile's value")
+    calibration: CalibrationRealism = Field(
+        CalibrationRealism(), description="calibration errors, drawn per robot; a key left out or null takes the profile's value"
+    )
+    imu: ImuRealism = Field(
+        ImuRealism(), description="IMU scale, misalignment and g-sensitivity errors; a key left out or null takes the profile's value"
+    )
+    wheels: WheelRealism = Field(WheelRealism(), description="wheel slip and radius errors; a key left out or null takes the profile's value")
+    light: LightRealism = Field(LightRealism(), description="sun, shadows and fill light; a key left out or null takes the profile's value")
 
     @model_validator(mode="after")
     def _fill_from_profile(self) -> RealismConfig:
@@ -869,7 +897,7 @@ class WrongDetectionFault(MeasurementFault):
     mirrored PnP solution gives: the measured transform turned by ``rotation_deg`` about a random axis and moved
     by ``translation_m`` in a random direction, before the robot uses or sends it; its covariance stays."""
 
-    type: Literal["wrong_detection"]
+    type: Literal["wrong_detection"] = Field(..., description="the fault's kind")
 
 
 class WrongMatchFault(MeasurementFault):
@@ -878,7 +906,7 @@ class WrongMatchFault(MeasurementFault):
     by ``translation_m`` horizontally (what a 4D match can be wrong by), with a confident covariance, as a wrong
     match that passed RANSAC and ICP would have."""
 
-    type: Literal["wrong_match"]
+    type: Literal["wrong_match"] = Field(..., description="the fault's kind")
     sigma_m: PositiveFloat = Field(0.03, description="the wrong closure's translation sigma (an accepted match's ICP RMSE)")
     sigma_deg: PositiveFloat = Field(1.0, description="the wrong closure's rotation sigma")
 
@@ -887,7 +915,7 @@ class DiesFault(FaultEntry):
     """The robot fails for good at ``start_s``: its motors stop (a hexacopter in flight falls), its sensors,
     computer and radio go silent. The rest of the team keeps what it received from it."""
 
-    type: Literal["dies"]
+    type: Literal["dies"] = Field(..., description="the fault's kind")
 
     @model_validator(mode="after")
     def _for_good(self) -> DiesFault:
@@ -900,21 +928,21 @@ class CameraDarkFault(FaultEntry):
     """The cameras see nothing (no light reaches the sensor: a lens cap, a dead illumination, a cable): the
     images carry only the sensor's noise."""
 
-    type: Literal["camera_dark"]
+    type: Literal["camera_dark"] = Field(..., description="the fault's kind")
     rigs: list[str] | None = Field(None, min_length=1, description="the stereo rigs that go dark (default: all of the robot's)")
 
 
 class ImuStuckFault(FaultEntry):
     """The IMU repeats its last sample (a frozen driver or bus)."""
 
-    type: Literal["imu_stuck"]
+    type: Literal["imu_stuck"] = Field(..., description="the fault's kind")
 
 
 class ImuSaturationFault(FaultEntry):
     """The IMU's range shrinks (a wrong range setting, an overload): each axis clips at the limits. The
     defaults are below lunar gravity (1.62 m/s^2) and a rover's turn rate, so the vertical axis and turns clip."""
 
-    type: Literal["imu_saturation"]
+    type: Literal["imu_saturation"] = Field(..., description="the fault's kind")
     accel_limit_mps2: PositiveFloat = Field(1.0, description="each accelerometer axis clips at +- this")
     gyro_limit_dps: PositiveFloat = Field(5.0, description="each gyro axis clips at +- this")
 
@@ -922,21 +950,21 @@ class ImuSaturationFault(FaultEntry):
 class EncoderFailureFault(FaultEntry):
     """One wheel's encoder reads zero speed (a broken encoder or cable); wheel odometry goes on with it."""
 
-    type: Literal["encoder_failure"]
+    type: Literal["encoder_failure"] = Field(..., description="the fault's kind")
     wheel: str = Field("fl", description=f"the wheel whose encoder fails; wheels per preset: {_per_preset('wheel_names')}")
 
 
 class RadioSilentFault(FaultEntry):
     """The robot's radio neither sends nor receives (every link to and from it is down)."""
 
-    type: Literal["radio_silent"]
+    type: Literal["radio_silent"] = Field(..., description="the fault's kind")
 
 
 class ComputeSlowdownFault(FaultEntry):
     """The on-board computer slows down (thermal throttling, a runaway process): every job's compute time
     is multiplied by ``factor``."""
 
-    type: Literal["compute_slowdown"]
+    type: Literal["compute_slowdown"] = Field(..., description="the fault's kind")
     factor: float = Field(4.0, ge=1, le=1000, description="compute time multiplier")
 
 
@@ -966,25 +994,29 @@ def control_ticks(control_rate_hz: float, rate_hz: float) -> int | None:
 
 
 class Scenario(StrictModel):
-    name: str = Field(..., pattern=r"^[A-Za-z0-9_.-]+$")
-    description: str = ""
-    seed: int = Field(0, ge=0)
+    name: str = Field(..., pattern=r"^[A-Za-z0-9_.-]+$", description="run name; results go to `results/<name>-seed<seed>/`")
+    description: str = Field("", description="free text about the scenario (the run does not use it)")
+    seed: int = Field(0, ge=0, description="seed of the run's named random streams (terrain, sensor noise, calibration errors, faults, network)")
     duration_s: float = Field(
-        ..., gt=0, le=2 * 86400, json_schema_extra={"why": "at most two days: runs go at about real time, the thesis's longest took an hour"}
+        ...,
+        gt=0,
+        le=2 * 86400,
+        description="simulated time the run lasts, the drain included",
+        json_schema_extra={"why": "at most two days: runs go at about real time, the thesis's longest took an hour"},
     )
     drain_s: NonNegFloat = Field(
         120.0,
         description="once every route is done: the robots rest, sensors off, for up to this long (within duration_s) while "
         "the last submaps are matched and queued jobs and messages finish; ends as soon as none is left",
     )
-    terrain: TerrainConfig = TerrainConfig()
-    robots: list[RobotConfig] = Field(..., min_length=1)
-    physics: PhysicsConfig = PhysicsConfig()
-    compute: ComputeConfig = ComputeConfig()
-    output: OutputConfig = OutputConfig()
-    comms: CommsConfig = CommsConfig()
-    slam: SlamConfig = SlamConfig()
-    realism: RealismConfig = RealismConfig()
+    terrain: TerrainConfig = Field(TerrainConfig(), description="the ground: heightfield, craters, slope, ridges, rocks, lander, albedo")
+    robots: list[RobotConfig] = Field(..., min_length=1, description="the team: at least one robot, names unique")
+    physics: PhysicsConfig = Field(PhysicsConfig(), description="MuJoCo time step and control rate")
+    compute: ComputeConfig = Field(ComputeConfig(), description="compute time of each on-board job on the robots' scheduler lanes (thesis 8.4)")
+    output: OutputConfig = Field(OutputConfig(), description="optional outputs: rerun recording and PNG plots")
+    comms: CommsConfig = Field(CommsConfig(), description="the network between robots, lander and ground station (docs/comms.md)")
+    slam: SlamConfig = Field(SlamConfig(), description="the on-board estimation stack of every robot (thesis ch. 4-6)")
+    realism: RealismConfig = Field(RealismConfig(), description="how far the simulated world departs from the ideal one (docs/realism.md)")
     faults: list[FaultConfig] = Field(
         [],
         description="injected failures, each a typed entry (`type:` wrong_detection, wrong_match, dies, camera_dark, imu_stuck, "

@@ -1,5 +1,6 @@
 """End to end through the command line: a short run writes every result file."""
 
+import importlib.metadata
 import json
 from pathlib import Path
 
@@ -12,6 +13,12 @@ from sim.scenario import load_scenario
 
 QUICKSTART = Path(__file__).parents[1] / "scenarios" / "quickstart.yaml"
 runner = CliRunner()
+
+
+def test_version():
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0, result.output
+    assert result.output == f"marsyard {importlib.metadata.version('marsyard')}\n"
 
 
 def test_validate_ok_and_bad_key(tmp_path):
