@@ -487,6 +487,15 @@ class Agent:
             S = S @ chain[i]
         return S
 
+    def pose_in_map(self, robot: str, frame_index: int, T_frame_body: np.ndarray) -> np.ndarray | None:
+        """Eq. 4.6 with the graph as it is now: ``robot``'s pose ``T_frame_body`` in its local
+        frame ``frame_index`` placed in this robot's map on that frame's origin (the latest
+        optimised submap origin at or before it, with the frame switches since); None until
+        the graph holds ``robot``. A robot's whole logged filter trajectory through this after
+        the run is its trajectory by the final graph."""
+        S = self._origin(robot, frame_index, self.peer_switches[robot])
+        return None if S is None else S @ T_frame_body
+
     def online_pose(self) -> np.ndarray | None:
         """This robot's pose in its map (eq. 4.6): submap origin ``s_j`` from the graph
         composed with the filter's current estimate ``v_t``."""
@@ -494,8 +503,7 @@ class Agent:
         if not est.initialised:
             return None
         f = est.filter
-        S = self._origin(self.name, f.frame_index, self.peer_switches[self.name])
-        return None if S is None else S @ f.pose()
+        return self.pose_in_map(self.name, f.frame_index, f.pose())
 
     def belief(self, robot: str) -> tuple[float, np.ndarray] | None:
         """Where this robot believes ``robot`` was at the time of its latest pose estimate
@@ -504,8 +512,8 @@ class Agent:
         pose = self.peer_pose.get(robot)
         if pose is None:
             return None
-        S = self._origin(robot, pose.frame_index, self.peer_switches[robot])
-        return None if S is None else (pose.t, S @ pose.T_frame_body)
+        B = self.pose_in_map(robot, pose.frame_index, pose.T_frame_body)
+        return None if B is None else (pose.t, B)
 
     def placed_submaps(self) -> list[tuple[Submap, np.ndarray]]:
         """Every finished submap this robot holds, its own and its peers', with its origin

@@ -507,6 +507,11 @@ class MultiRobotGraph:
     def node_count(self) -> int:
         return len(self._known)
 
+    def variables(self) -> dict[int, Node]:
+        """Every variable in the estimate, gtsam key -> ``(kind, robot, index)``: kind ``s``, ``x`` or ``l``, robot ``""``
+        for a landmark, index the submap index, the time or the landmark id (keys as :meth:`estimate`)."""
+        return {key: self._nodes[key] for key in sorted(self._nodes)}
+
     def signatures(self) -> list[tuple]:
         """``(type, node names, measurement rounded to 1e-6)`` of every factor in the estimate, sorted: the same
         for two graphs that got the same inputs in any order."""

@@ -74,6 +74,7 @@ class SlamInput:
 
     start_t: float | None  # the filter's first estimate: the time of the map frame's truth
     estimate: Trajectory  # its own pose in its map frame (eq. 4.6)
+    final_estimate: Trajectory  # the same times by the final graph: its logged filter poses on the final submap origins
     beliefs: dict[str, Rows]  # peer -> rows [t, t of the estimate, the 16 entries of the pose in this map]
     graph: MultiRobotGraph
     marginals: dict[tuple[str, int], np.ndarray]  # submap origin -> 6x6 covariance
@@ -172,6 +173,7 @@ def slam_input(onboard: OnboardStack) -> SlamInput | None:
     return SlamInput(
         start_t=_start_t(onboard),
         estimate=Trajectory.from_lists(slog.t, slog.pose),
+        final_estimate=_final_estimate(onboard),
         beliefs=slog.beliefs,
         graph=agent.graph,
         marginals=agent.marginals,
@@ -179,6 +181,26 @@ def slam_input(onboard: OnboardStack) -> SlamInput | None:
         detections=agent.detections,
         submaps_received=len(agent.peer_submaps),
     )
+
+
+def final_graph(onboard: OnboardStack) -> MultiRobotGraph | None:
+    """The robot's graph as the run ended; None without one (``slam.graph.enabled`` off)."""
+    return onboard.agent.graph if onboard.exchange else None
+
+
+def _final_estimate(onboard: OnboardStack) -> Trajectory:
+    """The robot's trajectory by its final graph: each pose its filter logged, in its local frame
+    of the time, placed on that frame's origin as the graph holds it at the end, as the online
+    pose is (eq. 4.6, :meth:`slam.agent.Agent.pose_in_map`); a pose the graph cannot place is
+    left out."""
+    log, agent, origins = onboard.log, onboard.agent, onboard.estimator.frame_origins
+    t, poses = [], []
+    for ti, j, T_first_body in zip(log.t, log.frame_index, log.pose_first_frame):
+        pose = agent.pose_in_map(agent.name, int(j), np.linalg.solve(origins[j], T_first_body))
+        if pose is not None:
+            t.append(ti)
+            poses.append(pose)
+    return Trajectory.from_lists(t, poses)
 
 
 def map_input(onboard: OnboardStack, image_cells: ImageCells | None = None) -> MapInput | None:

@@ -3,8 +3,8 @@
 ::
 
     maps/<robot>.ply            global point cloud of the robot's map (binary PLY, map frame):
-                                x y z, grey intensity, obstacle flag, robot number, submap index
-    maps/<robot>.voxels         merged log-odds voxel grid (``slam.voxels.VoxelGrid.to_bytes``)
+                                x y z, grey colour, intensity, obstacle flag, robot number, submap index
+    maps/<robot>.voxels.npz     merged log-odds voxel grid (``slam.voxels.VoxelGrid.to_arrays``)
     maps/<robot>.occupied.ply   centres of its occupied voxels (map frame)
     map_topdown.png             per robot: map points by height, obstacles, submap origins, true path
 
@@ -21,6 +21,16 @@ or beside another robot (within its ``body_radius_m`` of its true path while the
 was built, plus the classification window) are left out of both obstacle scores and counted. The section reads a
 :class:`sim.evaluation.inputs.MapInput`; what the top-down plot draws comes back apart,
 as a :class:`MapPlot`.
+
+The files are read with Open3D's tensor API (``open3d.t.io.read_point_cloud``) and numpy
+(fields and loading in docs/mapping.md, "Map files"): every PLY property has a type that
+reader keeps (float, double, uchar, int; it skips short, ushort, char and uint). Open3D's
+legacy reader (``open3d.io.read_point_cloud``) keeps only positions, normals and colours,
+so the grey value is written as colour too (red = green = blue = intensity). The header
+comments ``robot <number> <name>`` name the robot numbers. The grid goes to ``.npz`` as
+exact arrays rather than in ``VoxelGrid.to_bytes``, the network encoding, which quantises
+log-odds to int8 and needs marsyard to read; ``VoxelGrid.from_voxels`` rebuilds the grid
+from the arrays.
 """
 
 from __future__ import annotations
@@ -38,6 +48,7 @@ from sim.evaluation.map_quality import MapQualityParams, ObstacleScore, map_qual
 from sim.world.terrain import Terrain
 from slam.globalmap import GlobalMap
 from slam.submap import Submap
+from slam.voxels import VoxelGrid
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,13 +104,7 @@ def map_section(
         "voxels": len(voxels),
         "occupied_voxels": len(voxels.occupied_centers()),
     }
-    maps = out / "maps"
-    maps.mkdir(parents=True, exist_ok=True)
-    fields = {"intensity": intensity, "obstacle": obstacle.astype(np.uint8)}
-    fields |= {"robot": labels[:, 0].astype(np.uint8), "submap": labels[:, 1].astype(np.uint16)}
-    write_ply(maps / f"{name}.ply", points, fields)
-    (maps / f"{name}.voxels").write_bytes(voxels.to_bytes())
-    write_ply(maps / f"{name}.occupied.ply", voxels.occupied_centers(), {})
+    write_map_files(out / "maps", name, points, obstacle, intensity, labels, names, voxels)
     if len(points) == 0:
         section["quality"] = None
         return section, None
@@ -185,18 +190,39 @@ def _share(value: float | None) -> str:
     return "-" if value is None else f"{100 * value:.0f} %"
 
 
-_PLY_TYPES = {np.dtype(np.float32): "float", np.dtype(np.uint8): "uchar", np.dtype(np.uint16): "ushort"}
+def write_map_files(
+    maps: Path, name: str, points: np.ndarray, obstacle: np.ndarray, intensity: np.ndarray, labels: np.ndarray, names: list[str], voxels: VoxelGrid
+) -> None:
+    """The robot's map files in ``maps`` (thesis 5.2.2), from its composed map (:func:`compose`): the point cloud
+    (``<name>.ply``: grey colour, intensity, obstacle flag, robot number in ``names``, submap index), the voxel
+    grid (``<name>.voxels.npz``, :meth:`slam.voxels.VoxelGrid.to_arrays`) and its occupied voxels' centres
+    (``<name>.occupied.ply``)."""
+    maps.mkdir(parents=True, exist_ok=True)
+    fields = {"red": intensity, "green": intensity, "blue": intensity, "intensity": intensity, "obstacle": obstacle.astype(np.uint8)}
+    fields |= {"robot": labels[:, 0].astype(np.uint8), "submap": labels[:, 1].astype(np.int32)}
+    write_ply(maps / f"{name}.ply", points, fields, tuple(f"robot {number} {robot}" for number, robot in enumerate(names)))
+    np.savez_compressed(maps / f"{name}.voxels.npz", **voxels.to_arrays())
+    write_ply(maps / f"{name}.occupied.ply", voxels.occupied_centers(), {})
 
 
-def write_ply(path: Path, points: np.ndarray, fields: dict[str, np.ndarray]) -> None:
-    """Binary little-endian PLY of float32 points with extra per-point properties."""
+#: PLY property types that Open3D's tensor reader (``open3d.t.io.read_point_cloud``, 0.20) keeps; it skips short,
+#: ushort, char and uint properties
+_PLY_TYPES = {np.dtype(np.float32): "float", np.dtype(np.float64): "double", np.dtype(np.uint8): "uchar", np.dtype(np.int32): "int"}
+
+
+def write_ply(path: Path, points: np.ndarray, fields: dict[str, np.ndarray], comments: tuple[str, ...] = ()) -> None:
+    """Binary little-endian PLY of float32 points with extra per-point properties (float32, float64, uint8 or
+    int32) and header ``comments``."""
     points = np.asarray(points, dtype=np.float32)
     columns = [("x", points[:, 0]), ("y", points[:, 1]), ("z", points[:, 2])] + [(k, np.asarray(v)) for k, v in fields.items()]
+    for k, v in columns:
+        if v.dtype not in _PLY_TYPES:
+            raise ValueError(f"PLY property {k!r} has dtype {v.dtype}; allowed: {', '.join(str(t) for t in _PLY_TYPES)}")
     dtype = np.dtype([(k, v.dtype.newbyteorder("<")) for k, v in columns])
     rows = np.empty(len(points), dtype=dtype)
     for k, v in columns:
         rows[k] = v
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {len(points)}"]
     header += [f"property {_PLY_TYPES[v.dtype]} {k}" for k, v in columns]
     header.append("end_header\n")
     path.write_bytes("\n".join(header).encode() + rows.tobytes())

@@ -7,7 +7,9 @@ the filter-only and SLAM trajectories share ground truth). A robot's beliefs abo
 peers are compared in its map frame, whose true pose is its true start frame (the filter's
 first frame). Detections are compared with the true relative pose at their capture time.
 The section reads a :class:`sim.evaluation.inputs.SlamInput`; what ``slam.png`` draws
-besides the metrics comes back as a :class:`SlamPlot`.
+besides the metrics comes back as a :class:`SlamPlot`. It writes the robot's trajectories
+(:func:`write_trajectories`): online, by its final graph, its beliefs about its peers, and
+its own in the world, where the team's trajectories share one frame.
 """
 
 from __future__ import annotations
@@ -58,7 +60,7 @@ def slam_section(out: Path, name: str, slam: SlamInput | None, truth: TeamTruth,
         return {"status": "not started", "poses": len(estimate)}, None
     start = trajectory.truth_since(truth.of(name), slam.start_t)
     T_world_start = start.T_world_start
-    trajectory.write_tum(out / "trajectories" / f"{name}.slam.tum", estimate)
+    write_trajectories(out / "trajectories", name, slam, T_world_start)
     section: dict[str, Any] = {"status": "ok"}
     error_over_time = None
     try:
@@ -73,6 +75,24 @@ def slam_section(out: Path, name: str, slam: SlamInput | None, truth: TeamTruth,
     section["graph"] = _graph_metrics(slam)
     section["detections"] = _detection_metrics(name, slam, truth)
     return section, SlamPlot(error_over_time, edges)
+
+
+def write_trajectories(folder: Path, name: str, slam: SlamInput, T_world_start: np.ndarray) -> None:
+    """A robot's SLAM trajectories as TUM files in ``folder`` (the results folder's
+    ``trajectories/``): in its map frame ``<name>.slam.tum`` (online, eq. 4.6),
+    ``<name>.slam_final.tum`` (the same times by the final graph) and
+    ``<name>.belief.<peer>.tum`` (its belief about each peer, stamped with the time it held
+    it: the peer's latest pose estimate on the peer's submap origin as the graph held it
+    then, :meth:`slam.agent.Agent.belief`); and both of its own in the world, through its
+    true start frame ``T_world_start``, so that the team's trajectories share one frame:
+    ``team/<name>.slam.world.tum``, ``team/<name>.slam_final.world.tum``."""
+    trajectory.write_tum(folder / f"{name}.slam.tum", slam.estimate)
+    trajectory.write_tum(folder / f"{name}.slam_final.tum", slam.final_estimate)
+    for peer, rows in sorted(slam.beliefs.items()):
+        a = np.asarray(rows)
+        trajectory.write_tum(folder / f"{name}.belief.{peer}.tum", trajectory.Trajectory(a[:, 0], a[:, 2:].reshape(-1, 4, 4)))
+    for kind, own in (("slam", slam.estimate), ("slam_final", slam.final_estimate)):
+        trajectory.write_tum(folder / "team" / f"{name}.{kind}.world.tum", trajectory.Trajectory(own.t, T_world_start[None] @ own.T))
 
 
 def _record(recorder, name: str, slam: SlamInput, T_world_start: np.ndarray, edges: list) -> None:

@@ -5,6 +5,24 @@
     scenario.yaml               resolved scenario (defaults filled in, tag ids assigned)
     metrics.json                every number of the run (runtime, routes, stereo, lanes)
     trajectories/<robot>.gt.tum ground-truth body pose in the world frame (TUM: t x y z qx qy qz qw)
+    trajectories/<robot>.gt_start.tum, .filter.tum
+                                ground truth and the filter alone in the robot's start frame
+    trajectories/<robot>.slam.tum, .slam_final.tum
+                                its SLAM trajectory in its map frame (= its start frame): online
+                                (eq. 4.6), and the same times by its final graph (its logged filter
+                                poses on the final submap origins)
+    trajectories/<robot>.belief.<peer>.tum
+                                its belief about each peer over time, in its map frame, stamped
+                                with the time it held it (sim.evaluation.online_slam)
+    trajectories/team/<robot>.slam.world.tum, .slam_final.world.tum
+                                both in the world frame through the robot's true start frame:
+                                the team's trajectories in one frame
+    graphs/<robot>.g2o, .keys.csv
+                                its final graph as g2o (consecutive ids, robust kernels left out,
+                                the anchor as FIX 0) and the map of ids to gtsam keys and variables
+                                (slam.graph_export)
+    graphs/<robot>.graph.gtsam, .values.gtsam
+                                GTSAM's serialisation of the graph's factors and its estimate
     sensors/<robot>.npz         IMU (measured, true, true biases) and wheel odometry samples
     stereo_depth_error.csv      SGBM depth against rendered ground truth, per robot, rig, range
     lanes.csv                   per robot and stage: jobs, drops, queueing delay, compute time
@@ -12,7 +30,8 @@
     comms_links.csv             per link: wire bytes, retransmissions, up fraction, queue occupancy
     routes.csv                  every waypoint of every robot with its outcome
     topdown.png                 terrain, rocks, lander, trajectories and waypoint outcomes
-    maps/, map_topdown.png      each robot's global map and its top-down view (see sim.evaluation.maps)
+    maps/, map_topdown.png      each robot's global map (<robot>.ply points, <robot>.voxels.npz voxel grid,
+                                <robot>.occupied.ply) and its top-down view (see sim.evaluation.maps)
     recording.rrd               rerun recording (see sim.run.recording)
     error.txt                   only when the run failed: the traceback
 
@@ -45,6 +64,8 @@ from sim.evaluation.trajectory import ErrorOverTime
 from sim.run.faults import fault_metrics
 from sim.run.runner import Run
 from sim.scenario import Scenario, dump_scenario
+from slam import graph_export
+from slam.graph import MultiRobotGraph
 
 STEREO_SUMMARY_BINS = ("2-4m", "4-6m")  # the 2-6 m band tests/test_run.py holds stereo depth to
 
@@ -173,7 +194,7 @@ def _evaluate_onboard(run: Run, out: Path, name: str, truth: inputs.TeamTruth, r
     stack), each read from the run and evaluated under its own guard, and their plot data."""
     onboard = run.robots[name].onboard
     if onboard is None:
-        return {"filter": None, "slam": None, "map": None}, RobotPlots()
+        return {"filter": None, "slam": None, "map": None, "graph_export": None}, RobotPlots()
     slam, slam_plot = _guarded(
         out, f"SLAM evaluation of {name}", lambda: online_slam.slam_section(out, name, inputs.slam_input(onboard), truth, recorder)
     )
@@ -187,7 +208,20 @@ def _evaluate_onboard(run: Run, out: Path, name: str, truth: inputs.TeamTruth, r
             out, name, inputs.map_input(onboard, run.robots[name].image_cells), truth, run.terrain, recorder, list(run.robots).index(name)
         ),
     )
-    return {"filter": filter_section, "slam": slam, "map": robot_map}, RobotPlots(filter_plot, slam_plot, map_plot)
+    graph_files, _ = _guarded(out, f"graph export of {name}", lambda: (_export_graph(out, name, inputs.final_graph(onboard)), None))
+    return {"filter": filter_section, "slam": slam, "map": robot_map, "graph_export": graph_files}, RobotPlots(filter_plot, slam_plot, map_plot)
+
+
+def _export_graph(out: Path, name: str, graph: MultiRobotGraph | None) -> dict[str, Any] | None:
+    """The robot's final graph under ``graphs/`` (:mod:`slam.graph_export`); None without one."""
+    if graph is None:
+        return None
+    folder = out / "graphs"
+    folder.mkdir(parents=True, exist_ok=True)
+    vertices = graph_export.write_g2o(graph, folder / f"{name}.g2o")
+    graph_export.write_keys(vertices, folder / f"{name}.keys.csv")
+    graph_export.write_gtsam(graph, folder / f"{name}.graph.gtsam", folder / f"{name}.values.gtsam")
+    return {"status": "ok", "vertices": len(vertices)}
 
 
 def _write_tables(run: Run, out: Path, robots: list[_RobotResults]) -> None:
