@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Debian libraries that the Python wheels need but do not ship:
 # EGL + Mesa for MuJoCo's offscreen rendering (MUJOCO_GL=egl), libgomp for OpenCV/Open3D,
-# libusb for open3d's import (design notes §6). Installs only what is missing.
+# libusb for open3d's import (it loads libusb-1.0 at import time). Installs only what is missing.
 set -euo pipefail
 packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgomp1 libusb-1.0-0)
 missing=()

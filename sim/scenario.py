@@ -792,7 +792,7 @@ class LightRealism(StrictModel):
 #:   (tyre compliance and sinkage);
 #: - light: shadows off by default (their cost on 2 cores, docs/realism.md), no headlight;
 #:   the albedo texture at half the ideal world's contrast (0.35 was chosen for SGBM to
-#:   match easily, design notes 6), so that more of the image comes from shading: tuned
+#:   match easily), so that more of the image comes from shading: tuned
 #:   against the thesis's drift (docs/realism.md).
 REALISM_PROFILES: dict[str, dict[str, dict[str, Any]]] = {
     "ideal": {
