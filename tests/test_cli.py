@@ -2,6 +2,8 @@
 
 import importlib.metadata
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +47,15 @@ def test_short_run_writes_every_result_file(tmp_path):
 
     resolved = load_scenario(out / "scenario.yaml")
     assert resolved.seed == 5 and resolved.duration_s == 2
+
+    # the recording: JPEG camera images, uint16 depth, a default blueprint (read back by rerun's own CLI)
+    rerun = Path(sys.executable).parent / "rerun"
+    printed = subprocess.run([rerun, "rrd", "print", out / "recording.rrd"], capture_output=True, text=True, check=True)
+    chunks = printed.stdout.splitlines()
+    assert any("/cameras/lru1/head/left - data columns: [EncodedImage:blob EncodedImage:media_type]" in c for c in chunks)
+    depth = [c for c in chunks if "/cameras/lru1/head/depth - data columns" in c]
+    assert depth and all("DepthImage:format" in c for c in depth)
+    assert any("ViewBlueprint" in c for c in chunks)
 
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "completed"
