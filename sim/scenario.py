@@ -483,6 +483,11 @@ class OutputConfig(StrictModel):
         0.5, gt=0, le=1, description="camera images go into the recording at this fraction of their width and height"
     )
     topdown_png: bool = Field(True, description="write the plots topdown.png, filter_error.png, slam.png and map_topdown.png")
+    dataset: Literal["euroc"] | None = Field(
+        None,
+        description="euroc: write every robot's camera images (every frame, as the SLAM stack gets them), IMU, wheel odometry and ground "
+        "truth in the EuRoC MAV layout to dataset/<robot>/mav0/, for OpenVINS, ORB-SLAM3, VINS-Fusion or Kimera; null: no dataset",
+    )
 
 
 class MappingConfig(StrictModel):

@@ -3,7 +3,9 @@
 :func:`run_to_folder` builds the run, executes it and writes the folder of
 :mod:`sim.evaluation.results_folder`; a failure during the simulation still writes everything produced so
 far (``metrics.json`` says ``status: failed``). A failure while setting the run up
-raises :class:`RunSetupError` after writing the traceback to ``error.txt``.
+raises :class:`RunSetupError` after writing the traceback to ``error.txt``. With
+``output.dataset: euroc`` the run writes its robots' sensor data into ``dataset/``
+(:mod:`sim.run.dataset`) as it goes; its files are closed when the run ends, failed or not.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from sim.evaluation import results_folder
+from sim.run.dataset import DATASET_FOLDER, EurocDataset
 from sim.run.recording import Recorder
 from sim.run.runner import ProgressCallback, Run
 from sim.scenario import Scenario
@@ -44,13 +47,16 @@ def run_to_folder(scenario: Scenario, out: Path, progress: RunProgress | None = 
         if scenario.output.recording
         else None
     )
+    dataset = EurocDataset(out / DATASET_FOLDER) if scenario.output.dataset == "euroc" else None
     with progress.building(scenario) if progress else nullcontext():
         try:
-            simulation = Run(scenario, recorder)
+            simulation = Run(scenario, recorder, dataset)
         except Exception as exc:
             (out / "error.txt").write_text(traceback.format_exc())
             if recorder is not None:
                 recorder.close()
+            if dataset is not None:
+                dataset.close()
             raise RunSetupError(out / "error.txt", exc) from exc
     error = None
     with progress.simulating(scenario) if progress else nullcontext(None) as report:

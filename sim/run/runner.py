@@ -31,6 +31,7 @@ from comms import Network, StereoStream, raw_stereo_load
 from sim.evaluation.image_classification import ImageCells
 from sim.robots import make_robot
 from sim.robots.base import Robot
+from sim.run.dataset import DatasetWriter, EurocDataset
 from sim.run.faults import ConditionFaults, condition_faults
 from sim.run.lanes import ComputeModel, Device, Lane, Priority
 from sim.run.memory import MemoryTrace
@@ -164,6 +165,7 @@ class RobotRuntime:
     faults: ConditionFaults | None = None  # the scenario's condition faults that hit the robot (sim/run/faults.py)
     image_cells: ImageCells | None = None  # mapped images' obstacle cells at true camera poses
     capture_truth: dict[int, tuple[np.ndarray, list]] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots
+    dataset: DatasetWriter | None = None  # output.dataset: the robot's sensor data as it comes (sim/run/dataset.py)
 
 
 class Timers:
@@ -183,14 +185,16 @@ ProgressCallback = Callable[[float, dict[str, str]], None]
 
 class Run:
     """One scenario run. ``execute()`` runs it; afterwards the attributes hold everything
-    :mod:`sim.evaluation.results_folder` writes. A failure mid-run leaves what was produced so far in place."""
+    :mod:`sim.evaluation.results_folder` writes. A failure mid-run leaves what was produced so far in place.
+    With a ``dataset`` the run writes every robot's sensor data into it and closes it when it ends."""
 
-    def __init__(self, scenario: Scenario, recorder: Recorder | None = None):
+    def __init__(self, scenario: Scenario, recorder: Recorder | None = None, dataset: EurocDataset | None = None):
         self.scenario = scenario
         self.streams = RandomStreams(scenario.seed)
         self.timers = Timers()
         self.memory = MemoryTrace()
         self.recorder = recorder
+        self.dataset = dataset
         self.env = simpy.Environment()
         self.sim_time = 0.0
         self.mission_s: float | None = None  # when the sensors stopped: every route done, duration_s, or a failure
@@ -313,7 +317,16 @@ class Run:
         if onboard is not None and onboard.mapper is not None:
             runtime.image_cells = ImageCells(calibration(onboard.vo_rig), onboard.mapper.obstacle_params)
             onboard.on_mapped = lambda frame_id, depth, c, r=runtime: self._score_image(r, frame_id, depth, c.pixel_obstacles)
+        if self.dataset is not None:  # the cameras' believed transforms at t = 0 (the robots have settled)
+            T_body_cam = {rig.name: self._believed_body_camera(robot, rig) for rig in robot.stereo_rigs}
+            vo_rig = self.scenario.slam.vo_rig or robot.default_vo_rig
+            runtime.dataset = self.dataset.robot(robot, vo_rig, IMU_PRESETS[preset], T_body_cam)
         return runtime
+
+    def _believed_body_camera(self, robot: Robot, rig: StereoRig) -> np.ndarray:
+        """``T_body_cam`` of ``rig``'s left camera as the robot computes it now (nominal calibration, head encoders)."""
+        T_true = body_camera_transform(self.world.model, self.world.data, robot, rig.left_camera)
+        return believed_body_camera(T_true, rig, self.calibration_errors[robot.name])
 
     # ------------------------------------------------------------------ injected faults
 
@@ -414,10 +427,12 @@ class Run:
         self.sim_time = self.env.now
 
     def close(self) -> None:
-        """Release the renderers' GL contexts (``execute`` does this when it ends)."""
+        """Release the renderers' GL contexts and close the dataset's files (``execute`` does this when it ends)."""
         for runtime in self.robots.values():
             for renderer in runtime.renderers:
                 renderer.close()
+        if self.dataset is not None:
+            self.dataset.close()
 
     def _physics(self, progress: ProgressCallback | None, progress_every_s: float):
         model, data = self.world.model, self.world.data
@@ -504,6 +519,8 @@ class Run:
                 if onboard is not None and not robot.dead:
                     bias_true = np.concatenate([runtime.imu.accel_bias, runtime.imu.gyro_bias])
                     onboard.record(now, robot.rotation(), robot.velocity()[0], bias_true)
+                if runtime.dataset is not None:
+                    runtime.dataset.truth(now, pos, quat, robot.velocity()[0], runtime.imu.gyro_bias, runtime.imu.accel_bias)
             if robot.dead:  # its sensors and computer are off; the truth goes on
                 runtime.inertial.take(data)
                 continue
@@ -518,6 +535,8 @@ class Run:
                 log.imu_bias.append(np.concatenate([runtime.imu.accel_bias, runtime.imu.gyro_bias]))
                 if onboard is not None:
                     onboard.imu(now, accel, gyro)
+                if runtime.dataset is not None:
+                    runtime.dataset.imu(now, accel, gyro)
             if runtime.odometry is not None and tick % runtime.odom_every == 0:
                 wheels = robot.wheel_states()
                 if runtime.faults is not None:
@@ -527,6 +546,8 @@ class Run:
                 log.odom.append(odom)
                 if onboard is not None:
                     onboard.wheel_odometry(now, odom)
+                if runtime.dataset is not None:
+                    runtime.dataset.odometry(now, odom)
             t = self.timers.add("sensors", t)
             if tick % runtime.camera_every == 0:
                 self._capture(runtime, tick // runtime.camera_every, now)
@@ -554,9 +575,13 @@ class Run:
                 self.timers.add("recording", t)
             onboard = runtime.onboard
             for_vo = onboard is not None and rig is onboard.vo_rig
+            if onboard is not None or runtime.dataset is not None:
+                T_body_cam = self._believed_body_camera(runtime.robot, rig)
+            if runtime.dataset is not None:
+                t = time.perf_counter()
+                runtime.dataset.stereo(rig.name, now, stereo.left, stereo.right, T_body_cam)
+                self.timers.add("dataset", t)
             if onboard is not None:
-                T_true = body_camera_transform(self.world.model, self.world.data, runtime.robot, rig.left_camera)
-                T_body_cam = believed_body_camera(T_true, rig, self.calibration_errors[runtime.robot.name])
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
                     if runtime.image_cells is not None:
