@@ -2,8 +2,9 @@
 
 Imports only the standard library, numpy, simpy and pydantic: never ``sim`` or
 ``slam``. Modules: ``config`` (the scenario's ``comms:`` section and presets),
-``message`` (messages of real bytes), ``loss`` (Bernoulli, Gilbert-Elliott), ``link``
-(one direction: priority queue, serialization, propagation), ``availability``
+``message`` (messages of real bytes), ``loss`` (Bernoulli, Gilbert-Elliott, trace),
+``trace`` (CSV link traces), ``link`` (one direction: priority queue, serialization,
+propagation), ``availability``
 (outages, windows, range, line of sight), ``routing`` (relays), ``accounting``
 (tables, metrics, time series), ``network`` (the object the simulator uses), ``load``
 (raw-equivalent stereo load), ``bench`` (throughput of the model itself).

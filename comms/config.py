@@ -42,6 +42,7 @@ from pydantic import (
 from pydantic_core import CoreSchema
 
 from comms.errors import CommsError
+from comms.trace import TraceFile
 
 NODE_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
 LINK_KEY = re.compile(r"^\s*(\*|[A-Za-z][A-Za-z0-9_]{0,31})\s*(<->|->)\s*(\*|[A-Za-z][A-Za-z0-9_]{0,31})\s*$")
@@ -197,7 +198,9 @@ class LinkConfig(_Strict):
     A message of ``n`` bytes is cut into ``ceil(n / mtu_bytes)`` fragments; each takes
     ``8 * size / bandwidth_bps`` to serialize (one at a time per link, so fragments
     queue) and then ``latency_s`` plus a uniform extra delay in ``[0, jitter_s]`` to
-    propagate; a link never reorders (an arrival waits for the one before it)."""
+    propagate; a link never reorders (an arrival waits for the one before it). With
+    ``trace``, the trace's row in effect when a fragment starts to serialize replaces
+    ``latency_s``, ``bandwidth_bps`` and ``loss`` for that fragment (:mod:`comms.trace`)."""
 
     enabled: bool = Field(True, description="false: the link is down for the whole run")
     latency_s: Delay = Field(0.002, description="one-way propagation delay of each fragment")
@@ -213,8 +216,21 @@ class LinkConfig(_Strict):
     ack_timeout_s: PositiveFloat | None = Field(
         None, description="reliable delivery: retransmit after this (null: from both directions' latencies)"
     )
+    trace: TraceFile | None = Field(
+        None,
+        description="CSV file t_s,latency_s,bandwidth_bps,loss (docs/comms.md) whose rows replace latency_s, bandwidth_bps and loss over time; "
+        "a relative path is taken from the scenario file's folder (null: no trace)",
+    )
 
     _w = field_validator("windows")(lambda v: None if v is None else [_check_window(w) for w in v])
+
+    def worst_latency_s(self) -> float:
+        """``latency_s``, or the trace's largest latency (what timeouts and routes plan with)."""
+        return self.latency_s if self.trace is None else self.trace.max_latency_s()
+
+    def worst_bandwidth_bps(self) -> float:
+        """``bandwidth_bps``, or the trace's smallest bandwidth (what timeouts and routes plan with)."""
+        return self.bandwidth_bps if self.trace is None else self.trace.min_bandwidth_bps()
 
 
 class _OnlySet(_Strict):
@@ -243,7 +259,7 @@ class _OnlySet(_Strict):
 class LinkOverride(_OnlySet):
     """Any subset of :class:`LinkConfig`'s fields for the links a key names."""
 
-    NULLABLE: ClassVar[frozenset[str]] = frozenset({"range_m", "windows", "ack_timeout_s"})
+    NULLABLE: ClassVar[frozenset[str]] = frozenset({"range_m", "windows", "ack_timeout_s", "trace"})
 
     enabled: bool | None = Field(None, description="overrides defaults.enabled")
     latency_s: Delay | None = Field(None, description="overrides defaults.latency_s")
@@ -255,6 +271,7 @@ class LinkOverride(_OnlySet):
     line_of_sight: bool | None = Field(None, description="overrides defaults.line_of_sight")
     windows: list[Window] | None = Field(None, description="overrides defaults.windows (null: always up; []: never)")
     ack_timeout_s: PositiveFloat | None = Field(None, description="overrides defaults.ack_timeout_s (null: from both directions' latencies)")
+    trace: TraceFile | None = Field(None, description="overrides defaults.trace (null: no trace, the link's own latency, bandwidth and loss)")
 
     _w = field_validator("windows")(lambda v: None if v is None else [_check_window(w) for w in v])
 
@@ -544,6 +561,7 @@ def resolve_links(config: CommsConfig, nodes: list[str] | tuple[str, ...]) -> di
     config.check_nodes(list(nodes))
     ordered = sorted(enumerate(config.links.items()), key=lambda item: (_specificity(item[1][0]), item[0]))
     base = config.defaults.model_dump()
+    base["trace"] = config.defaults.trace  # the parsed trace, not its path: read once
     out: dict[tuple[str, str], LinkConfig] = {}
     for src in nodes:
         for dst in nodes:
@@ -581,8 +599,9 @@ def outage_links(spec: OutageConfig | RandomOutageConfig, nodes: list[str] | tup
 def auto_ack_timeout(forward: LinkConfig, reverse: LinkConfig, ack_bytes: int) -> float:
     """Reliable delivery's retransmission timeout when none is configured: the round
     trip (both latencies plus jitters), one MTU of the reverse link that an ack may
-    wait behind, the ack itself, times 1.25, plus 10 ms."""
-    rtt = forward.latency_s + forward.jitter_s + reverse.latency_s + reverse.jitter_s
-    wait = 8.0 * (reverse.mtu_bytes + ack_bytes) / reverse.bandwidth_bps
+    wait behind, the ack itself, times 1.25, plus 10 ms. A link that follows a trace
+    counts with its worst row (largest latency, smallest bandwidth)."""
+    rtt = forward.worst_latency_s() + forward.jitter_s + reverse.worst_latency_s() + reverse.jitter_s
+    wait = 8.0 * (reverse.mtu_bytes + ack_bytes) / reverse.worst_bandwidth_bps()
     value = 1.25 * (rtt + wait) + 0.01
     return value if math.isfinite(value) else 1.0

@@ -6,7 +6,10 @@ uniform extra delay in ``[0, jitter]``. Between two fragments the transmitter pi
 the most urgent transfer again, so a small pose message preempts a 700 KB submap at
 the next fragment boundary (thesis 8.4 sizes). Within a priority, first come first
 served. Arrivals never overtake each other (a link is a pipe, not a mesh). Loss is
-drawn per fragment. Driven by SimPy callbacks, not processes, to keep events cheap.
+drawn per fragment. A link that follows a trace (:mod:`comms.trace`) looks up the row in
+effect when a fragment starts to serialize (bisect on the time) and takes that row's
+bandwidth, latency and loss for the fragment. Driven by SimPy callbacks, not processes,
+to keep events cheap.
 """
 
 from __future__ import annotations
@@ -108,9 +111,10 @@ class Link:
         self.name = f"{src}->{dst}"
         self._loss, self._jitter, self._host, self.stats = loss, jitter, host, stats
         self._bits_per_s = float(cfg.bandwidth_bps)
+        self._trace = cfg.trace
         self._queues: list[deque[tuple[int, Transfer]]] = [deque() for _ in range(_LEVELS)]
         self._busy = False
-        self._current: tuple[Transfer, int, int, int] | None = None
+        self._current: tuple[Transfer, int, int, int, float, float] | None = None  # ..., epoch, send time, latency
         self._last_arrival = 0.0
         self.epoch = 0  # +1 each time the link goes down: aborts a fragment in serialization
         self.blocks: dict[str, int] = {}  # reason -> count; up when all are zero
@@ -205,14 +209,20 @@ class Link:
         if t is None:
             return
         index = t.pending[t.cursor]
+        now = self.env.now
+        if self._trace is None:
+            bits_per_s, latency = self._bits_per_s, self.cfg.latency_s
+        else:
+            row = self._trace.row(now)
+            bits_per_s, latency = self._trace.bandwidth_bps[row], self._trace.latency_s[row]
         self._busy = True
-        self._current = (t, index, t.token, self.epoch)
-        event = self.env.timeout(8.0 * t.sizes[index] / self._bits_per_s)
+        self._current = (t, index, t.token, self.epoch, now, latency)
+        event = self.env.timeout(8.0 * t.sizes[index] / bits_per_s)
         event.callbacks.append(self._serialized)
 
     def _serialized(self, _event: simpy.Event) -> None:
         self._busy = False
-        t, index, token, epoch = self._current
+        t, index, token, epoch, sent, latency = self._current
         self._current = None
         if epoch != self.epoch or token != t.token or t.state != TransferState.QUEUED:
             # the link went down meanwhile, or the transfer left the queue: aborted
@@ -226,11 +236,11 @@ class Link:
         last = t.cursor == len(t.pending)
         if last:
             t.token += 1  # leaves the queue; its entry goes stale
-        if self._loss.lost():
+        if self._loss.lost(sent):
             self.stats.fragment_lost(size)
             self._host._fragment_lost(t, index)
         else:
-            arrival = now + self.cfg.latency_s
+            arrival = now + latency
             if self.cfg.jitter_s > 0.0:
                 arrival += self.cfg.jitter_s * self._jitter.next()
             arrival = max(arrival, self._last_arrival)

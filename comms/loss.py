@@ -1,4 +1,5 @@
-"""Per-fragment loss: none, independent (Bernoulli) or bursty (Gilbert-Elliott).
+"""Per-fragment loss: none, independent (Bernoulli), bursty (Gilbert-Elliott) or
+following a link trace (independent, with the rate of the trace's row at the send time).
 
 The Gilbert-Elliott channel is a two-state Markov chain stepped once per fragment: in
 the good state a fragment is lost with ``loss_good``, in the bad state with
@@ -15,6 +16,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 
 from comms.config import LossConfig, LossModel
+from comms.trace import LinkTrace
 
 _BLOCK = 1024
 
@@ -43,12 +45,12 @@ class Loss(ABC):
     """Decides for each fragment whether it is lost."""
 
     @abstractmethod
-    def lost(self) -> bool:
-        """True if the next fragment is lost."""
+    def lost(self, t: float) -> bool:
+        """True if the next fragment, sent at simulated time ``t``, is lost."""
 
 
 class NoLoss(Loss):
-    def lost(self) -> bool:
+    def lost(self, t: float) -> bool:
         return False
 
 
@@ -57,8 +59,20 @@ class BernoulliLoss(Loss):
         self.rate = rate
         self._u = UniformStream(rng)
 
-    def lost(self) -> bool:
+    def lost(self, t: float) -> bool:
         return self._u.next() < self.rate
+
+
+class TraceLoss(Loss):
+    """Independent loss with the rate of the trace's row in effect at ``t``; one draw
+    per fragment, also where the rate is 0, so the draws do not shift with the trace."""
+
+    def __init__(self, trace: LinkTrace, rng: np.random.Generator):
+        self.trace = trace
+        self._u = UniformStream(rng)
+
+    def lost(self, t: float) -> bool:
+        return self._u.next() < self.trace.loss[self.trace.row(t)]
 
 
 class GilbertElliottLoss(Loss):
@@ -76,7 +90,7 @@ class GilbertElliottLoss(Loss):
         self.bad = start_bad
         self._u = UniformStream(rng)
 
-    def lost(self) -> bool:
+    def lost(self, t: float) -> bool:
         u = self._u.next()
         self.bad = (u >= self.p_bg) if self.bad else (u < self.p_gb)
         p = self.loss_bad if self.bad else self.loss_good
@@ -87,7 +101,10 @@ class GilbertElliottLoss(Loss):
         return self._u.next() < p
 
 
-def make_loss(cfg: LossConfig, rng: np.random.Generator) -> Loss:
+def make_loss(cfg: LossConfig, rng: np.random.Generator, trace: LinkTrace | None = None) -> Loss:
+    """The loss of a link: its trace's if it follows one (``cfg`` is then ignored), else ``cfg``'s."""
+    if trace is not None:
+        return TraceLoss(trace, rng)
     if cfg.model == LossModel.NONE or cfg.stationary_loss_rate() == 0.0:
         return NoLoss()
     if cfg.model == LossModel.BERNOULLI:

@@ -120,7 +120,7 @@ class Network:
                 a,
                 b,
                 cfg,
-                make_loss(cfg.loss, self._stream(seed, "loss", key)),
+                make_loss(cfg.loss, self._stream(seed, "loss", key), cfg.trace),
                 UniformStream(self._stream(seed, "jitter", key)),
                 self,
                 self.accounting.links[(a, b)],
@@ -130,7 +130,7 @@ class Network:
             or auto_ack_timeout(link.cfg, (self.links.get((k[1], k[0])) or link).cfg, _TYPICAL_ACK_BYTES)
             for k, link in self.links.items()
         }
-        cost = {k: l.cfg.latency_s + 8.0 * l.cfg.mtu_bytes / l.cfg.bandwidth_bps for k, l in self.links.items()}
+        cost = {k: l.cfg.worst_latency_s() + 8.0 * l.cfg.mtu_bytes / l.cfg.worst_bandwidth_bps() for k, l in self.links.items()}
         self.router = Router(names, config.relays, cost, lambda a, b: self.links[(a, b)].up)
         self.availability = Availability(
             env, config, names, self.links, self._links_changed, seed, positions, line_of_sight

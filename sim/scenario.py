@@ -1404,12 +1404,15 @@ def _shown(value: Any) -> str:
     return shown[:77] + "..." if len(shown) > 80 else shown
 
 
-def load_scenario(source: str | Path | dict, overrides: list[str] | None = None) -> Scenario:
-    """Load, override and validate a scenario; raise :class:`ScenarioError` on any problem."""
+def load_scenario(source: str | Path | dict, overrides: list[str] | None = None, base_dir: str | Path | None = None) -> Scenario:
+    """Load, override and validate a scenario; raise :class:`ScenarioError` on any problem.
+    Relative file paths in it (``comms`` link traces) are taken from ``base_dir``: by
+    default the scenario file's folder, or the current directory for a dict."""
     if isinstance(source, dict):
         raw, label = source, "<dict>"
     else:
         path = Path(source)
+        base_dir = path.parent if base_dir is None else base_dir
         label = str(path)
         if not path.is_file():
             raise ScenarioError(label, ["file not found"])
@@ -1421,7 +1424,7 @@ def load_scenario(source: str | Path | dict, overrides: list[str] | None = None)
             raise ScenarioError(label, [f"top level must be a mapping, got {type(raw).__name__}"])
     raw = apply_overrides(raw, overrides or [])
     try:
-        return Scenario.model_validate(raw)
+        return Scenario.model_validate(raw, context={"base_dir": base_dir})
     except ValidationError as exc:
         raise ScenarioError(label, [line for e in exc.errors() for line in _describe(e, raw).splitlines()]) from None
 

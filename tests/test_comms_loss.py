@@ -54,11 +54,11 @@ def test_a_fragmented_message_is_lost_if_any_fragment_is():
 
 def test_gilbert_elliott_has_the_configured_rate_and_mean_burst():
     model = GilbertElliottLoss(0.05 * 0.25 / 0.95, 0.25, 0.0, 1.0, np.random.default_rng(3))
-    lost = np.array([model.lost() for _ in range(200_000)])
+    lost = np.array([model.lost(0.0) for _ in range(200_000)])
     assert lost.mean() == pytest.approx(0.05, rel=0.1)
     assert burst_lengths(lost).mean() == pytest.approx(4.0, rel=0.1)
     independent = BernoulliLoss(0.05, np.random.default_rng(3))
-    plain = np.array([independent.lost() for _ in range(200_000)])
+    plain = np.array([independent.lost(0.0) for _ in range(200_000)])
     assert burst_lengths(plain).mean() == pytest.approx(1 / 0.95, rel=0.05)
 
 

@@ -68,7 +68,7 @@ def run_spec(spec: RunSpec, folder: Path) -> Outcome:
 
     t0 = time.perf_counter()
     try:
-        scenario = load_scenario(scenario_dict(spec.raw, spec.robots), spec.overrides)
+        scenario = load_scenario(scenario_dict(spec.raw, spec.robots), spec.overrides, spec.base_dir)
         metrics = run_to_folder(scenario, folder)
         outcome = Outcome(metrics["status"], metrics["error"])
     except RunSetupError as exc:

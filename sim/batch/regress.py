@@ -149,6 +149,7 @@ def _spec(config: RegressConfig, name: str, seed: int) -> RunSpec:
         overrides=[*canonical.set, f"seed={seed}"],
         robots=None,
         timeout_s=canonical.timeout_s,
+        base_dir=str((REPO / canonical.scenario).parent),
     )
 
 

@@ -156,6 +156,7 @@ class RunSpec:
     overrides: list[str]
     robots: list[str] | None
     timeout_s: float | None
+    base_dir: str | None = None  # the base scenario's folder: relative paths in it start there
 
     def digest(self) -> str:
         """Identifies what the run computes, so a resumed batch redoes runs whose inputs changed."""
@@ -190,6 +191,7 @@ class Batch:
                 overrides=[*v.overrides, *self.extra, f"seed={seed}"],
                 robots=list(v.robots) if v.robots else None,
                 timeout_s=self.config.timeout_s,
+                base_dir=str(self.scenario_path.parent),
             )
             for seed in self.config.seed_list()
             for v in self.variants
@@ -302,7 +304,7 @@ def check(batch: Batch) -> list[VariantProblem]:
     failing = []
     for spec in batch.specs()[: len(batch.variants)]:
         try:
-            load_scenario(scenario_dict(spec.raw, spec.robots), spec.overrides)
+            load_scenario(scenario_dict(spec.raw, spec.robots), spec.overrides, spec.base_dir)
         except ScenarioError as exc:
             failing.append(VariantProblem(spec.variant, spec.overrides, spec.robots, exc.problems))
     return failing
