@@ -61,29 +61,29 @@ OutageMean = Annotated[
 ]
 
 
-def _strict_numbers(schema: Any) -> None:
+def strict_numbers(schema: Any) -> None:
     """Make every number and boolean in a pydantic core ``schema`` strict: no ``true`` taken
     as 1, no ``"3"`` as 3, no 2.5 rounded into an integer (floats still take integers)."""
     if isinstance(schema, dict):
         if schema.get("type") in ("float", "int", "bool"):
             schema["strict"] = True
         for value in schema.values():
-            _strict_numbers(value)
+            strict_numbers(value)
     elif isinstance(schema, list):
         for value in schema:
-            _strict_numbers(value)
+            strict_numbers(value)
 
 
-class _Strict(BaseModel):
-    """Base of every model here: unknown keys, NaN, infinities and numbers of the wrong
-    type are errors (as in the scenario schema, which comms does not import)."""
+class StrictConfig(BaseModel):
+    """Base of every model here and of the scenario schema's (``sim.scenario.StrictModel``): unknown keys,
+    NaN, infinities and numbers of the wrong type are errors."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     @classmethod
     def __get_pydantic_core_schema__(cls, source: type[BaseModel], handler: GetCoreSchemaHandler) -> CoreSchema:
         schema = handler(source)
-        _strict_numbers(schema)
+        strict_numbers(schema)
         return schema
 
 
@@ -130,7 +130,7 @@ class Preset(StrEnum):
 # --------------------------------------------------------------------------- links
 
 
-class LossConfig(_Strict):
+class LossConfig(StrictConfig):
     """Fragment loss. ``bernoulli``: each fragment lost with ``rate``.
     ``gilbert_elliott``: a good and a bad state, switched per fragment with
     ``p_good_to_bad`` / ``p_bad_to_good``, losing with ``loss_good`` / ``loss_bad``;
@@ -192,7 +192,7 @@ class LossConfig(_Strict):
         return (1 - pi_bad) * lg + pi_bad * lb
 
 
-class LinkConfig(_Strict):
+class LinkConfig(StrictConfig):
     """One direction of a link, fully resolved.
 
     A message of ``n`` bytes is cut into ``ceil(n / mtu_bytes)`` fragments; each takes
@@ -233,7 +233,7 @@ class LinkConfig(_Strict):
         return self.bandwidth_bps if self.trace is None else self.trace.min_bandwidth_bps()
 
 
-class _OnlySet(_Strict):
+class _OnlySet(StrictConfig):
     """Overrides: a field applies only if it was given (so ``range_m: null`` can mean
     'no range limit' rather than 'not overridden'); dumps only what was given."""
 
@@ -279,7 +279,7 @@ class LinkOverride(_OnlySet):
 # --------------------------------------------------------------------------- kinds
 
 
-class KindPolicy(_Strict):
+class KindPolicy(StrictConfig):
     """How messages of one kind travel. ``priority``: 0 is served first; a link sends
     one fragment at a time and always picks the most urgent waiting one, so a pose is
     not stuck behind a 700 KB submap (thesis 8.4). ``max_queued``: messages of this
@@ -310,7 +310,7 @@ class KindOverride(_OnlySet):
 # --------------------------------------------------------------------------- availability
 
 
-class OutageConfig(_Strict):
+class OutageConfig(StrictConfig):
     """All named links down in ``[start_s, end_s)``. ``nodes``: every link to or from
     these nodes; ``links``: keys like ``links:`` uses; both empty: the whole network."""
 
@@ -328,7 +328,7 @@ class OutageConfig(_Strict):
         return self
 
 
-class RandomOutageConfig(_Strict):
+class RandomOutageConfig(StrictConfig):
     """Outages at random: up for an exponential time with mean ``mean_up_s``, then all
     named links (same scoping as :class:`OutageConfig`) down together for an
     exponential time with mean ``mean_down_s``, from ``start_s`` on. Seeded."""
@@ -421,7 +421,7 @@ def _deep_merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
 # --------------------------------------------------------------------------- root
 
 
-class CommsConfig(_Strict):
+class CommsConfig(StrictConfig):
     """The scenario's ``comms:`` section (see the module docstring)."""
 
     enabled: bool = Field(True, description="false: every link is down, robots share nothing")

@@ -30,14 +30,13 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    GetCoreSchemaHandler,
     ValidationError,
     field_validator,
     model_validator,
 )
-from pydantic_core import CoreSchema
 
 from comms import CommsConfig, CommsError
+from comms.config import StrictConfig
 from sim import safe_yaml
 from sim.robots import PRESETS
 from sim.world.lander import LANDER_PAD_RADIUS, LANDER_RADIUS
@@ -81,30 +80,11 @@ class ScenarioError(ValueError):
         super().__init__(f"{source}: invalid scenario\n  " + "\n  ".join(problems))
 
 
-def _strict_numbers(schema: Any) -> None:
-    """Make every number and boolean in a pydantic core ``schema`` strict: no ``true`` taken
-    as 1, no ``"3"`` as 3, no 2.5 rounded into an integer (floats still take integers)."""
-    if isinstance(schema, dict):
-        if schema.get("type") in ("float", "int", "bool"):
-            schema["strict"] = True
-        for value in schema.values():
-            _strict_numbers(value)
-    elif isinstance(schema, list):
-        for value in schema:
-            _strict_numbers(value)
-
-
-class StrictModel(BaseModel):
+class StrictModel(StrictConfig):
     """Base of every scenario section: unknown keys, NaN, infinities and numbers of the
-    wrong type are errors."""
+    wrong type are errors (:class:`comms.config.StrictConfig`); assignments are validated too."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
-
-    @classmethod
-    def __get_pydantic_core_schema__(cls, source: type[BaseModel], handler: GetCoreSchemaHandler) -> CoreSchema:
-        schema = handler(source)
-        _strict_numbers(schema)
-        return schema
+    model_config = ConfigDict(validate_assignment=True)
 
 
 def _ordered_range(value: tuple[float, float], what: str) -> tuple[float, float]:

@@ -133,6 +133,8 @@ def test_variants_times_sweep_and_override_round_trip(tmp_path):
         ({"seeds": 1, "variants": [{"label": "x"}, {"label": "x"}]}, "variant labels must be unique"),
         ({"seeds": 1, "variants": [{"label": "x"}], "baseline": "y"}, "baseline: got 'y': not a variant"),
         ({"seeds": 1, "variants": [{"label": "x", "set": {"a.b": 1}}], "sweep": {"a.b": [1, 2]}}, "keys ['a.b'] are swept too"),
+        ({"seeds": 1, "timeout_s": True}, "timeout_s: got True"),  # the batch file's numbers are strict, as the scenario's
+        ({"seeds": 1, "timeout_s": float("nan")}, "timeout_s: got nan"),
     ],
 )
 def test_batch_file_errors_name_the_key(tmp_path, fields, expected):

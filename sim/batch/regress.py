@@ -26,11 +26,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
 from sim.batch.execute import Outcome, run_local
 from sim.batch.report import flatten
 from sim.batch.spec import RunSpec
+from sim.scenario import StrictModel
 
 REPO = Path(__file__).resolve().parents[2]
 BASELINES = REPO / "results" / "baselines"
@@ -42,11 +43,7 @@ class RegressError(ValueError):
     """A regression config or baseline that cannot be used."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class Tracked(_Strict):
+class Tracked(StrictModel):
     pattern: str
     worse: Literal["higher", "lower"]
     relative: float = Field(..., ge=0, description="tolerated change as a fraction of the baseline value")
@@ -60,16 +57,16 @@ class Tracked(_Strict):
         return max(self.relative * abs(baseline), self.absolute)
 
 
-class Canonical(_Strict):
+class Canonical(StrictModel):
     description: str = ""
     scenario: str = Field(..., description="scenario YAML, relative to the repository root")
-    set: list[str] = []
+    set: list[str] = Field(default_factory=list)
     seeds: list[int] = Field(..., min_length=1)
     fast: bool = Field(False, description="also run by `make test` (pytest marker `regression`)")
     timeout_s: float = Field(900.0, gt=0)
 
 
-class RegressConfig(_Strict):
+class RegressConfig(StrictModel):
     tracked: list[Tracked] = Field(..., min_length=1)
     scenarios: dict[str, Canonical] = Field(..., min_length=1)
 

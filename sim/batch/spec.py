@@ -34,10 +34,10 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from sim import safe_yaml
-from sim.scenario import ScenarioError, load_scenario
+from sim.scenario import ScenarioError, StrictModel, load_scenario
 
 LABEL_PATTERN = r"^[A-Za-z0-9_.-]+$"
 #: What the report summarises when a batch file names no ``metrics``: per-robot columns
@@ -60,10 +60,6 @@ class BatchError(ValueError):
         super().__init__(f"{source}: invalid batch file\n  " + "\n  ".join(problems))
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
 def _check_keys(overrides: dict[str, Any]) -> dict[str, Any]:
     for key in overrides:
         if not key or any(not part for part in key.split(".")):
@@ -73,18 +69,18 @@ def _check_keys(overrides: dict[str, Any]) -> dict[str, Any]:
     return overrides
 
 
-class VariantConfig(_Strict):
+class VariantConfig(StrictModel):
     """A labelled variant: overrides and, optionally, the robots of the base scenario it keeps."""
 
     label: str = Field(..., pattern=LABEL_PATTERN)
     description: str = ""
-    set: dict[str, Any] = {}
+    set: dict[str, Any] = Field(default_factory=dict)
     robots: list[str] | None = Field(None, min_length=1, description="keep only these robots of the base scenario")
 
     _keys = field_validator("set")(_check_keys)
 
 
-class BatchConfig(_Strict):
+class BatchConfig(StrictModel):
     """The schema of a batch YAML (see the module docstring)."""
 
     name: str = Field(..., pattern=LABEL_PATTERN)
@@ -92,9 +88,9 @@ class BatchConfig(_Strict):
     scenario: str = Field(..., description="base scenario YAML, relative to the batch file")
     seeds: int | list[int] = Field(..., description="a count n (seeds 0..n-1) or an explicit list")
     timeout_s: float | None = Field(None, gt=0, description="per-run wall-clock limit")
-    set: dict[str, Any] = {}
-    variants: list[VariantConfig] = []
-    sweep: dict[str, list[Any]] = {}
+    set: dict[str, Any] = Field(default_factory=dict)
+    variants: list[VariantConfig] = Field(default_factory=list)
+    sweep: dict[str, list[Any]] = Field(default_factory=dict)
     baseline: str | None = Field(None, description="variant the others are compared with (default: the first)")
     metrics: list[str] = Field(default_factory=lambda: list(DEFAULT_METRICS), min_length=1)
 
