@@ -194,13 +194,15 @@ def _final_estimate(onboard: OnboardStack) -> Trajectory:
     pose is (eq. 4.6, :meth:`slam.agent.Agent.pose_in_map`); a pose the graph cannot place is
     left out."""
     log, agent, origins = onboard.log, onboard.agent, onboard.estimator.frame_origins
-    t, poses = [], []
-    for ti, j, T_first_body in zip(log.t, log.frame_index, log.pose_first_frame):
-        pose = agent.pose_in_map(agent.name, int(j), np.linalg.solve(origins[j], T_first_body))
-        if pose is not None:
-            t.append(ti)
-            poses.append(pose)
-    return Trajectory.from_lists(t, poses)
+    t, frames, T_first_body = np.asarray(log.t), np.asarray(log.frame_index), np.asarray(log.pose_first_frame)
+    keep, poses = np.zeros(len(t), bool), np.zeros((len(t), 4, 4))
+    for j in np.unique(frames):  # one origin per local frame, then all its poses at once
+        S = agent.pose_in_map(agent.name, int(j), np.eye(4))
+        if S is not None:
+            sel = frames == j
+            keep[sel] = True
+            poses[sel] = S @ np.linalg.solve(origins[int(j)][None], T_first_body[sel])
+    return Trajectory(t[keep], poses[keep])
 
 
 def map_input(onboard: OnboardStack, image_cells: ImageCells | None = None) -> MapInput | None:
