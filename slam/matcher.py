@@ -8,7 +8,8 @@ roll-pitch thresholds) and 4D+6D (the 4D alignment, refined by a 6D ICP).
 
 Keypoints (:class:`KeypointSelection`) are the thesis's obstacle points (6.1.1), or
 points of salient local geometry: a surface variation (Pauly et al. 2002: the smallest
-eigenvalue of the neighbourhood's scatter over their sum) above a threshold, so that
+eigenvalue of the neighbourhood's scatter over their sum) above a threshold that
+persists at twice the neighbourhood (Rusu et al. 2008's persistence over scales), so that
 rough ground, ridges and crater rims can be matched where no obstacle was classified
 (the lesson of 9.3), or both.
 
@@ -79,6 +80,9 @@ class MatcherParams:
     min_selected_points: int = 100  # thesis: 100 obstacle points; here of the keypoint selection
     saliency_radius_m: float = 0.2  # neighbourhood of the surface variation (geometry keypoints)
     min_surface_variation: float = 0.03  # lambda_min / sum(lambda) of that neighbourhood; a plane has 0, isotropic scatter 1/3
+    # ... and it must persist at twice the radius (Rusu et al. 2008): stereo noise on flat ground at 3-4 m reaches 0.03 at
+    # 0.2 m but averages out at 0.4 m, rock flanks stay salient (docs/matching.md, "Mapping range")
+    min_surface_variation_wide: float = 0.02
     keypoint_resolution_m: float = 0.1
     min_known_fraction: float = 0.5  # of the voxels in the descriptor sphere (thesis 0.8; see docs/matching.md)
     line_distance_m: float = 0.5
@@ -177,7 +181,8 @@ def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     """Suitability check and keypoints of one submap (6.1.1), or the reason it is
     unsuitable: at least ``min_points`` points and ``min_selected_points`` selected
     points (obstacle points, points with a :func:`surface_variation` of at least
-    ``min_surface_variation``, or either); keypoints are the selected points filtered
+    ``min_surface_variation`` within ``saliency_radius_m`` and ``min_surface_variation_wide``
+    within twice that, or either); keypoints are the selected points filtered
     at ``keypoint_resolution_m``, dropped where less than ``min_known_fraction`` of the
     voxels in the descriptor sphere are known; at least ``min_off_line_keypoints``
     keypoints must lie farther than ``line_distance_m`` (xy) from a RANSAC line through
@@ -189,7 +194,9 @@ def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     if params.keypoints is not KeypointSelection.GEOMETRY:
         selected |= np.asarray(submap.obstacle, dtype=bool)
     if params.keypoints is not KeypointSelection.OBSTACLES:
-        selected |= surface_variation(pts, params.saliency_radius_m) >= params.min_surface_variation
+        selected |= (surface_variation(pts, params.saliency_radius_m) >= params.min_surface_variation) & (
+            surface_variation(pts, 2 * params.saliency_radius_m) >= params.min_surface_variation_wide
+        )
     n = int(selected.sum())
     if n < params.min_selected_points:
         return f"too few {_SELECTED[params.keypoints]} points"

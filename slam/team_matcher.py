@@ -56,6 +56,7 @@ class TeamMatcher:
         self._origins: dict[SubmapKey, np.ndarray] = {}
         self._unplaced: set[SubmapKey] = set()  # prepared, but without an origin in the graph at the last pairing
         self.stale = False  # the graph changed since the last pairing in a way that matters to it
+        self.not_queued: dict[str, int] = {}  # the last pairing's open pairs of this robot it did not queue, by reason
 
     def add_submap(self, submap: Submap) -> None:
         """A finished submap (own or a peer's) to prepare in the next pairing job."""
@@ -110,10 +111,14 @@ class TeamMatcher:
                 bound[3:, 3:] = origins[b][:3, :3].T @ bound[3:, 3:] @ origins[b][:3, :3]  # into b's frame
                 wide[(a, b)] = bound
         self.queue.refresh(origins, wide)
+        not_queued = dict(self.queue.rejected)
         survivors = [c.pair for c in self.queue.candidates()]
         pairs = [((a[0], self.frames[a]), (b[0], self.frames[b])) for a, b in survivors]
         exact = graph.relative_covariances(pairs)
         self.queue.refresh(origins, {pair: exact[g] for pair, g in zip(survivors, pairs) if g in exact})
+        for reason, n in self.queue.rejected.items():
+            not_queued[reason] = not_queued.get(reason, 0) + n
+        self.not_queued = not_queued
         return len(self.queue)
 
     def next_candidate(self) -> Candidate | None:

@@ -113,6 +113,8 @@ def test_surface_variation_is_zero_on_a_plane_and_high_at_an_edge():
     far = (step[:, 0] > 0.4) & (np.abs(step[:, 1]) < 0.8)
     assert np.min(sv[at_edge]) > MatcherParams().min_surface_variation
     assert np.max(sv[far]) < 1e-9
+    # an edge persists at twice the radius (the flat rendered submap's far-range noise does not: test below)
+    assert np.min(surface_variation(step, 0.4)[at_edge]) > MatcherParams().min_surface_variation_wide
 
 
 # ----------------------------------------------------------------------------- pairing

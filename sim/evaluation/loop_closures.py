@@ -50,6 +50,7 @@ def match_metrics(closures: ClosureInput, origins: dict[str, dict[int, np.ndarra
         "matches": sum(r.result.success for r in records),
         "rejected": dict(reasons),
         "pairs_untried": len(matcher.queue),  # queued by the last pairing, never matched: the run ended first
+        "pairs_not_queued": dict(matcher.not_queued),  # the last pairing's open pairs it owns and did not queue, by reason (eq. 6.1-6.3)
         "submaps_waiting": matcher.waiting,  # received, never prepared
         "wrong_matches": 0,  # accepted, but off by more than WRONG_MATCH_M or WRONG_MATCH_DEG
     }
