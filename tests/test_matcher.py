@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from slam.lie import roll_pitch, rot_z, rot_zyx, se3, yaw_of
-from slam.matcher import KeypointSelection, MatcherParams, MatchMode, PairQueue, evaluate_pair, match_pair, prepare, surface_variation
+from slam.matcher import KeypointSelection, MatcherParams, MatchMode, PairQueue, Prior, evaluate_pair, match_pair, prepare, surface_variation
 from slam.registration import fit_4d, fit_6d, icp, off_line_count, ransac, two_point_4d
 
 
@@ -208,14 +208,28 @@ def test_rendered_submaps_of_the_same_rocks_match(rendered, mode, keypoints):
 def test_prior_far_from_the_match_rejects_it(rendered):
     (A, O_a), (B, O_b), _, _ = rendered
     p = MatcherParams()
-    from slam.matcher import Prior
-
     T_true = np.linalg.inv(O_a) @ O_b
     wrong = T_true.copy()
     wrong[:3, 3] += [1.0, 0.0, 0.0]
     res = match_pair(prepare(A, p), prepare(B, p), p, Prior(wrong, np.array([0.2, 0.2, 0.2])))
     assert not res.success
     assert match_pair(prepare(A, p), prepare(B, p), p, Prior(T_true, np.array([0.2, 0.2, 0.2]))).success
+
+
+def test_a_graph_more_certain_than_the_match_does_not_veto_it(rendered):
+    """The 2-sigma check compares two estimates: a graph 10 cm off with 2 cm sigmas (an
+    overconfident filter) keeps the right closure, whose own sigma is at least
+    ``hypothesis_sigma_m``; 60 cm off it does not."""
+    (A, O_a), (B, O_b), _, _ = rendered
+    p = MatcherParams()
+    T_true = np.linalg.inv(O_a) @ O_b
+    for offset, success in ((0.1, True), (0.6, False)):
+        prior = T_true.copy()
+        prior[:3, 3] += [offset, 0.0, 0.0]
+        res = match_pair(prepare(A, p), prepare(B, p), p, Prior(prior, np.array([0.02, 0.02, 0.02])))
+        assert res.success == success, (offset, res.reason)
+        if success:
+            assert np.linalg.norm(res.T_a_b[:3, 3] - T_true[:3, 3]) < 0.15
 
 
 def test_non_overlapping_and_featureless_submaps_are_rejected(rendered):
