@@ -502,13 +502,12 @@ class MappingConfig(StrictModel):
     )
     pixel_error_px: PositiveFloat = slam_field(
         SlamParam(ObstacleParams, "pixel_error"),
-        description="Δp of eq. 5.2 and 5.4 in the obstacle classification's step thresholds (thesis 0.5 px)",
+        description="Δp of eq. 5.2 and 5.4 in the obstacle classification (thesis 0.5 px): with max_depth_error_m its far cut; the step thresholds",
     )
-    range_pixel_error_px: PositiveFloat = slam_field(
+    submap_pixel_error_px: PositiveFloat = slam_field(
         SlamParam(SubmapParams, "pixel_error"),
-        SlamParam(ObstacleParams, "range_pixel_error"),
-        description="Δp of eq. 5.2c for the far cut (with max_depth_error_m) of the submaps and the obstacle classification: the "
-        "disparity error stereo really has (docs/matching.md, 'Mapping range'), so maps reach as far as their points are accurate",
+        description="Δp of eq. 5.2c for the submaps' far cut (with max_depth_error_m): the disparity error stereo really has "
+        "(docs/matching.md, 'Mapping range'), so submaps reach as far as their points are accurate",
     )
     step_height_m: PositiveFloat = slam_field(
         SlamParam(ObstacleParams, "step_height_m"), description="h_max: highest step the robot drives over (thesis 5.1.1)"

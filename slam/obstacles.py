@@ -54,7 +54,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from slam.stereo import DEFAULT_PIXEL_ERROR, RANGE_PIXEL_ERROR, StereoCalibration, cut_far_points, distance_error, nearest_depth
+from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, cut_far_points, distance_error, nearest_depth
 
 
 class ObstacleException(ValueError):
@@ -77,14 +77,13 @@ class ObstacleParams:
     step_height_m: float = 0.15  # h_max: the robot's maximal traversable step
     max_slope_rad: float = math.radians(20.0)  # the robot's maximal traversable slope (negative edges)
     edge_jump_m: float = 0.2  # depth jump between consecutive valid pixels of a column
-    max_error_m: float = 0.15  # far cut: points with Δp_z (eq. 5.2c, Δp = range_pixel_error) above this are dropped
-    range_pixel_error: float = RANGE_PIXEL_ERROR  # Δp of that cut: the submaps' range, so every mapped point is classified
-    pixel_error: float = DEFAULT_PIXEL_ERROR  # Δp of the step thresholds (eq. 5.4) and far sides' depth (eq. 5.2c)
+    max_error_m: float = 0.15  # far cut: points with Δp_z (eq. 5.2c) above this are dropped
+    pixel_error: float = DEFAULT_PIXEL_ERROR  # Δp of eq. 5.2 and 5.4
     cell_height: CellHeight = CellHeight.MEAN
     inf_depth_m: float | None = None  # depth assumed for inf pixels in the negative-edge search; None: no data
 
     def __post_init__(self):
-        positive = ("resolution_m", "step_height_m", "edge_jump_m", "max_error_m", "range_pixel_error", "pixel_error")
+        positive = ("resolution_m", "step_height_m", "edge_jump_m", "max_error_m", "pixel_error")
         bad = [f"{k}={getattr(self, k)}" for k in positive if not getattr(self, k) > 0]
         if bad:
             raise ObstacleException(f"ObstacleParams must be positive: {', '.join(bad)}")
@@ -185,7 +184,7 @@ def _prepare(
     """Checked inputs: the depth the negative-edge search reads (inf as ``inf_depth_m`` or no
     data), its gravity-frame points (3, H, W), the pixels within the far cut (eq. 5.2c), R, t."""
     depth, R, t = _check_inputs(depth, calibration, T_gravity_cam)
-    in_range = np.isfinite(cut_far_points(depth, calibration, params.max_error_m, params.range_pixel_error))
+    in_range = np.isfinite(cut_far_points(depth, calibration, params.max_error_m, params.pixel_error))
     inf_depth = np.float32(np.nan if params.inf_depth_m is None else params.inf_depth_m)
     depth_e = np.where(np.isinf(depth), inf_depth, depth)
     return depth_e, _gravity_points(depth_e, calibration, R, t), in_range, R, t

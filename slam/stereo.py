@@ -38,10 +38,6 @@ import numpy as np
 
 #: Pixel error of the thesis (5.1.1: calibration RMSE up to 0.46 px, 0.5 px assumed).
 DEFAULT_PIXEL_ERROR = 0.5
-#: Δp of the mapping range (eq. 5.2c's far cut of the submaps and the obstacle classification): the 1-sigma
-#: disparity error SGBM really has, measured on Etna in the realistic world (docs/matching.md, "Mapping range");
-#: with a 0.15 m cut the 320x240 LRU maps to 4.0 m (0.5 px: 2.5 m), as the thesis's LRU (2.5-5 m).
-RANGE_PIXEL_ERROR = 0.2
 DEFAULT_MIN_DEPTH_M = 0.5  # nearest depth StereoMatcher searches disparities for
 
 

@@ -52,7 +52,7 @@ from functools import cached_property
 
 import numpy as np
 
-from slam.stereo import RANGE_PIXEL_ERROR, StereoCalibration, cut_far_points, depth_to_points
+from slam.stereo import StereoCalibration, cut_far_points, depth_to_points
 from slam.voxels import VoxelException, VoxelGrid
 
 _BITS = 21  # per axis in a packed voxel key: +-2^20 voxels, +-52 km at 5 cm
@@ -173,7 +173,10 @@ class SubmapParams:
     point_resolution_m: float = 0.05  # point cloud voxel filter (5.1.2)
     voxel_resolution_m: float = 0.1  # log-odds voxel grid (5.1.2)
     max_depth_error_m: float = 0.15  # far cut: points with Δp_z (eq. 5.2c) above this are dropped
-    pixel_error: float = RANGE_PIXEL_ERROR  # Δp of eq. 5.2c for the far cut (the obstacle thresholds keep the thesis's 0.5 px)
+    # Δp of eq. 5.2c for the far cut: the disparity error stereo really has, not the thesis's 0.5 px (which the obstacle
+    # thresholds keep). 0.2 px is the 1-sigma SGBM error measured on Etna in the realistic world (docs/matching.md,
+    # "Mapping range"); with max_depth_error_m 0.15 m the 320x240 LRU maps to 4.0 m (0.5 px: 2.5 m), as the thesis's 2.5-5 m.
+    pixel_error: float = 0.2
     max_position_std_m: float = 0.15  # new submap at this filter position std (5.1.3: 0.1 m)
     max_distance_m: float = 5.0  # new submap after this distance driven in it (5.1.3: 3.5 or 7 m)
     voxel_max_range_m: float | None = None  # rays longer than this only clear free space, up to this range

@@ -47,7 +47,7 @@ class ImageCells:
         camera (OpenCV axes) and the other robots' true xy with their body radii (their
         surroundings are not scored, :attr:`MapQualityParams.robot_margin_m` beyond)."""
         cal, p = self.calibration, self.params
-        cut = cut_far_points(depth, cal, p.max_error_m, p.range_pixel_error)
+        cut = cut_far_points(depth, cal, p.max_error_m, p.pixel_error)
         seen = np.isfinite(cut)
         cam = depth_to_points(cut, cal)[seen].astype(float)
         xy = (cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3])[:, :2]
