@@ -171,13 +171,13 @@ def test_current_submap_is_always_fresh(submaps):
     integrate(builder, camera_pose(0.0, 0.0, 0.0), 0.0)
     one = g.compose(POSES, current=(builder.current(), T_cur))
     grid_one = g.voxel_grid(POSES, current=(builder.current(), T_cur))
-    integrate(builder, camera_pose(0.0, 1.5, 0.0), 1.0)
+    integrate(builder, camera_pose(0.0, 3.0, 0.0), 1.0)  # beside the first view, which reaches y = 1.9 m at the 4 m cut
     two = g.compose(POSES, current=(builder.current(), T_cur))
     grid_two = g.voxel_grid(POSES, current=(builder.current(), T_cur))
     assert (g.stats.cloud_recompositions, g.stats.cloud_hits, g.stats.grid_recompositions, g.stats.grid_hits) == (1, 1, 1, 1)
     cur_one, cur_two = np.all(one.labels == [0, 1], axis=1), np.all(two.labels == [0, 1], axis=1)
     assert cur_one.sum() > 100 and cur_two.sum() > cur_one.sum() + 100  # the second image is in
-    assert two.points[cur_two, 1].max() > 1.5 > one.points[cur_one, 1].max()
+    assert two.points[cur_two, 1].max() > 3.0 > one.points[cur_one, 1].max()
     assert len(grid_two) > len(grid_one)
     # without the current submap, the cached finished map alone
     np.testing.assert_array_equal(g.compose(POSES).points, global_map(a, b).compose(POSES).points)
