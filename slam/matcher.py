@@ -108,7 +108,7 @@ class MatcherParams:
     max_roll_pitch_final_rad: float = math.radians(1.0)  # 6D and 4D+6D ICP (8.1.2)
     sigma_bound: float = 2.0  # hypotheses must lie within this many sigmas of the graph (its relative sigmas and theirs combined)
     # a match's own translation sigma in that check, at least: half RANSAC's inlier distance (the ICP residual
-    # understates a closure's error: 5-18 cm errors at 2-4 cm RMSE on Etna, docs/matching.md)
+    # understates a closure's error: 7-18 cm errors at 4-8 cm RMSE on the rock field and Etna, docs/matching.md)
     hypothesis_sigma_m: float = 0.1
     sigma_scale: float = 1.0  # multiplies the graph's relative sigmas (eq. 6.1-6.4 and the checks)
     # refinement and acceptance
