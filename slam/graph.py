@@ -438,6 +438,10 @@ class MultiRobotGraph:
         """The current iSAM2 estimate, key -> 4x4 pose (keys as :meth:`batch_optimize`)."""
         return {key: self._estimate.atPose3(key).matrix() for key in sorted(self._nodes)}
 
+    def estimate_values(self) -> gtsam.Values:
+        """The current iSAM2 estimate as ``gtsam.Values`` (a copy), for GTSAM's own tools and files."""
+        return gtsam.Values(self._estimate)
+
     def submap_origin(self, robot: str, index: int) -> np.ndarray | None:
         return self._value(("s", _robot(robot, "robot"), _index(index, "index")))
 

@@ -81,7 +81,7 @@ def write_g2o(graph: MultiRobotGraph, path: Path) -> list[Vertex]:
     """The graph as a g2o file at ``path`` (module docstring); returns its vertices."""
     verts = vertices(graph)
     ids = {v.key: v.id for v in verts}
-    values = estimate_values(graph)
+    values = graph.estimate_values()
     vertex_lines = [f"VERTEX_SE3:QUAT {v.id} {_pose_text(values.atPose3(v.key))}" for v in verts]
     fixed, edges = [], []
     factors = graph.batch_graph()
@@ -111,15 +111,7 @@ def write_keys(verts: list[Vertex], path: Path) -> None:
 def write_gtsam(graph: MultiRobotGraph, factors_path: Path, values_path: Path) -> None:
     """GTSAM's serialisation of the factors in the estimate and of the estimate (module docstring)."""
     factors_path.write_text(graph.batch_graph().serialize())
-    values_path.write_text(estimate_values(graph).serialize())
-
-
-def estimate_values(graph: MultiRobotGraph) -> gtsam.Values:
-    """The graph's current estimate as ``gtsam.Values`` under its own keys."""
-    values = gtsam.Values()
-    for key, T in graph.estimate().items():
-        values.insert(key, gtsam.Pose3(T))
-    return values
+    values_path.write_text(graph.estimate_values().serialize())
 
 
 def gaussian(noise: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:

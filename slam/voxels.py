@@ -346,9 +346,10 @@ class VoxelGrid:
         with its frame's origin). Voxel ``(i, j, k)`` spans ``origin + [i, i + 1) x [j, j + 1) x [k, k + 1) *
         resolution``, its centre at ``origin + (index + 0.5) * resolution``; occupied if ``log_odds > 0``, free if
         below. ``from_voxels(a["indices"], a["log_odds"], float(a["resolution"]))`` rebuilds the grid exactly."""
+        indices, log_odds = self.voxels()
         return {
-            "indices": _unpack(self._keys).astype(np.int32),
-            "log_odds": self._values.copy(),
+            "indices": indices.astype(np.int32),
+            "log_odds": log_odds,
             "resolution": np.array(self._resolution),
             "origin": np.zeros(3),
         }
