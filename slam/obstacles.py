@@ -20,8 +20,8 @@ Pipeline per depth image (``classify_depth``)
    docs/mapping.md).
 2. Stereo-error-adaptive steps on a gravity-aligned 2.5D height map (cells of 0.05 m on the
    lattice ``floor(x / resolution)``, mean height of the points per cell as in the thesis;
-   ``CellHeight.MAX`` as a variant). Points whose depth error (eq. 5.2c) exceeds
-   ``max_error_m`` are dropped first (``slam.stereo.cut_far_points``). In a square window of
+   ``CellHeight.MAX`` as a variant). Points whose depth error (eq. 5.2c) may exceed
+   ``max_error_m`` are dropped first (:func:`classified_pixels`). In a square window of
    ``window_cells`` (3..6) around each cell, ``h_diff`` is the difference of the highest and
    the lowest cell; ``Δd`` is eq. 5.4 (``slam.stereo.distance_error``) for the centre points of
    those two cells, taken back into the camera frame. The cell's traversability is
@@ -54,7 +54,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, cut_far_points, distance_error, nearest_depth
+from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, cut_far_points, distance_error, farthest_depth, nearest_depth
 
 
 class ObstacleException(ValueError):
@@ -178,13 +178,25 @@ def _gravity_points(depth: np.ndarray, calibration: StereoCalibration, R: np.nda
     return pts
 
 
+def classified_pixels(depth: np.ndarray, calibration: StereoCalibration, params: ObstacleParams) -> np.ndarray:
+    """The pixels the classification reads (bool (H, W)): a depth whose error (eq. 5.2c) is
+    within ``max_error_m`` even at the farthest depth its stereo error allows
+    (:func:`slam.stereo.farthest_depth`). SGBM's sub-pixel disparities lock to whole pixels
+    (on Etna a quarter of them are integers, against a sixteenth if they were spread
+    evenly), so a point measured at the cut may lie up to half a pixel of disparity beyond
+    it, placed too near; the last 4 cm before the cut held 57 % of the falsely flagged step
+    pixels (docs/mapping.md). The cut falls at 2.40 m instead of 2.54 m for the LRU at 320x240."""
+    far = farthest_depth(np.asarray(depth, dtype=float), calibration, params.pixel_error)
+    return np.isfinite(cut_far_points(far, calibration, params.max_error_m, params.pixel_error))
+
+
 def _prepare(
     depth: np.ndarray, calibration: StereoCalibration, T_gravity_cam: np.ndarray, params: ObstacleParams
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Checked inputs: the depth the negative-edge search reads (inf as ``inf_depth_m`` or no
     data), its gravity-frame points (3, H, W), the pixels within the far cut (eq. 5.2c), R, t."""
     depth, R, t = _check_inputs(depth, calibration, T_gravity_cam)
-    in_range = np.isfinite(cut_far_points(depth, calibration, params.max_error_m, params.pixel_error))
+    in_range = classified_pixels(depth, calibration, params)
     inf_depth = np.float32(np.nan if params.inf_depth_m is None else params.inf_depth_m)
     depth_e = np.where(np.isinf(depth), inf_depth, depth)
     return depth_e, _gravity_points(depth_e, calibration, R, t), in_range, R, t

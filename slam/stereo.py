@@ -107,11 +107,22 @@ class StereoMatcher:
     range, against 0.1 % inside, and every such point at the view's edge made a false step
     in the obstacle classification (docs/mapping.md).
 
+    SGBM's prefilter (a 3x3 horizontal Sobel) reads one pixel beyond each block, and at the
+    region's edge that pixel is a replicated border: with camera noise the last valid column
+    held 1.3 per mille of depths more than 0.1 m off, its neighbours none, so the valid region
+    is shrunk by that pixel.
+
     Textureless pixels are invalid too: SGBM's path aggregation carries the disparity of a
     textured neighbour into a uniform region (the sky above a rover's mast took the mast's
     depth and became a wall of obstacles). A pixel needs a mean horizontal gradient
     ``|dI/du|`` of at least ``min_texture`` grey levels per pixel over the matching block,
-    the role of ``textureThreshold`` in OpenCV's block matcher, which SGBM lacks.
+    the role of ``textureThreshold`` in OpenCV's block matcher, which SGBM lacks. The
+    gradient is taken after a Gaussian blur of ``texture_blur_px``: pixel noise alone
+    (sensor shot and read noise, independent per pixel) gives a noisy sky a mean gradient
+    above 1 grey level, scene texture is correlated over pixels and keeps most of its
+    gradient (docs/mapping.md). The speckle filter runs once more after these masks: they
+    can cut a mismatched region into islands smaller than ``speckle_window_size``, which
+    SGBM's own filter, run before them, saw connected to the rest.
     """
 
     def __init__(
@@ -127,6 +138,7 @@ class StereoMatcher:
         pre_filter_cap: int = 31,
         mode: int = cv2.STEREO_SGBM_MODE_SGBM_3WAY,
         min_texture: float = 1.0,
+        texture_blur_px: float = 0.8,
     ):
         if min_depth_m <= 0:
             raise StereoException(f"min_depth_m must be > 0, got {min_depth_m}")
@@ -134,9 +146,14 @@ class StereoMatcher:
             raise StereoException(f"block_size must be odd and >= 1, got {block_size}")
         if not min_texture >= 0:
             raise StereoException(f"min_texture must be >= 0, got {min_texture}")
+        if not texture_blur_px >= 0:
+            raise StereoException(f"texture_blur_px must be >= 0, got {texture_blur_px}")
         self.calibration = calibration
         self.block_size = block_size
         self.min_texture = float(min_texture)
+        self.texture_blur_px = float(texture_blur_px)
+        self.speckle_window_size = speckle_window_size
+        self.speckle_range = speckle_range
         self.min_depth_m = float(min_depth_m)
         max_disparity = calibration.fb / min_depth_m
         self.num_disparities = int(16 * math.ceil(max_disparity / 16))
@@ -162,7 +179,7 @@ class StereoMatcher:
         full = (0, 0, calibration.width, calibration.height)
         x, y, w, h = cv2.getValidDisparityROI(full, full, 0, self.num_disparities, block_size)
         self.valid_region = np.zeros((calibration.height, calibration.width), dtype=bool)
-        self.valid_region[y : y + h, x : x + w] = True
+        self.valid_region[y + 1 : y + h - 1, x + 1 : x + w - 1] = True  # less the prefilter's pixel
 
     def _grey(self, image: np.ndarray, which: str) -> np.ndarray:
         image = np.asarray(image)
@@ -181,12 +198,19 @@ class StereoMatcher:
         """Disparity in pixels (float32, 1/16 px resolution); invalid pixels NaN."""
         grey = self._grey(left, "left")
         raw = self._sgbm.compute(grey, self._grey(right, "right"))
+        invalid = np.int16(-16)  # OpenCV marks invalid as (minDisparity - 1) * 16
+        raw[~self.valid_region | (self.texture(grey) < self.min_texture)] = invalid
+        if self.speckle_window_size > 0:
+            cv2.filterSpeckles(raw, invalid, self.speckle_window_size, 16 * self.speckle_range)
         disp = raw.astype(np.float32) * np.float32(1 / 16)
-        disp[(raw < 0) | ~self.valid_region | (self.texture(grey) < self.min_texture)] = np.nan  # OpenCV marks invalid as (minDisparity - 1) * 16
+        disp[raw < 0] = np.nan
         return disp
 
     def texture(self, grey: np.ndarray) -> np.ndarray:
-        """Mean ``|dI/du|`` (grey levels per pixel, Sobel) over the matching block around each pixel."""
+        """Mean ``|dI/du|`` (grey levels per pixel, Sobel, after a Gaussian blur of
+        ``texture_blur_px``) over the matching block around each pixel."""
+        if self.texture_blur_px > 0:
+            grey = cv2.GaussianBlur(grey, (0, 0), self.texture_blur_px)
         gradient = np.abs(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3)) * np.float32(1 / 8)
         return cv2.boxFilter(gradient, -1, (self.block_size, self.block_size))
 
@@ -280,6 +304,15 @@ def nearest_depth(depth: np.ndarray | float, calibration: StereoCalibration, pix
     ``sqrt(2) Δp`` (the error of eq. 5.2c before linearisation); ``inf`` gives ``fb / (sqrt(2) Δp)``."""
     z = np.asarray(depth, dtype=float)
     return calibration.fb / (calibration.fb / z + math.sqrt(2) * pixel_error)
+
+
+def farthest_depth(depth: np.ndarray | float, calibration: StereoCalibration, pixel_error: float = DEFAULT_PIXEL_ERROR):
+    """The farthest depth a z-depth is within its stereo error: the disparity lowered by
+    ``sqrt(2) Δp`` (as :func:`nearest_depth` raises it); ``inf`` where that reaches zero."""
+    z = np.asarray(depth, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disparity = calibration.fb / z - math.sqrt(2) * pixel_error
+        return np.where(disparity > 0, calibration.fb / disparity, np.inf)
 
 
 def cut_far_points(

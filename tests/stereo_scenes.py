@@ -89,17 +89,27 @@ def textured_heightfield_scene(width: int, height: int, seed: int = 0, size_m: f
     return model, data, rig, CameraConfig(width=width, height=height)
 
 
-def procedural_terrain_scene(width: int, height: int, seed: int = 3, size_m: float = 20.0, texture_px: int = 1024, light=None):
+def procedural_terrain_scene(
+    width: int,
+    height: int,
+    seed: int = 3,
+    size_m: float = 20.0,
+    texture_px: int = 1024,
+    light=None,
+    pitch_deg: float = HEAD_PITCH_DEG,
+    preset: str = "moon",
+):
     """The same head over sim.world.terrain's heightfield, rocks and regolith albedo
     (``texture_px`` texels of 2 cm, repeated as often as the terrain needs), lit by ``light``
-    (a ``sim.scenario.LightRealism``; default: add_terrain's)."""
+    (a ``sim.scenario.LightRealism``; default: add_terrain's), looking ``pitch_deg`` down,
+    on a ``preset`` site (sim.world.terrain: ground and sky colours)."""
     from dm_control import mjcf
 
     from sim.scenario import TerrainConfig
     from sim.world.terrain import add_terrain, generate_terrain
 
     cfg = TerrainConfig.model_validate(
-        {"size_m": size_m, "craters": {"count": 2}, "rocks": {"count": 8}, "texture": {"size_px": texture_px}}
+        {"preset": preset, "size_m": size_m, "craters": {"count": 2}, "rocks": {"count": 8}, "texture": {"size_px": texture_px}}
     )
     head_xy = (-size_m / 4, 0.0)
     terrain = generate_terrain(cfg, np.random.default_rng(seed), [(head_xy, 1.0)])
@@ -109,7 +119,7 @@ def procedural_terrain_scene(width: int, height: int, seed: int = 3, size_m: flo
     glob = getattr(root.visual, "global")
     glob.offwidth, glob.offheight = 640, 480
     rig = StereoRig("head", "left", "right", BASELINE_M, HFOV_DEG, width, height)
-    x, y = head_xyaxes()
+    x, y = head_xyaxes(pitch_deg)
     z = float(terrain.height_at(*head_xy)) + HEAD_HEIGHT_M
     body = root.worldbody.add("body", name="head", pos=[head_xy[0], head_xy[1], z])
     for name, sign in ((rig.left_camera, -0.5), (rig.right_camera, 0.5)):

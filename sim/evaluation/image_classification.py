@@ -3,8 +3,9 @@
 that ``map.classification`` (own submaps on their true origins) still carries.
 
 While a run maps, :class:`ImageCells` collects per robot the 2.5D cells its images saw
-within the mapping range and the cells of their pixels flagged as obstacles, each pixel
-placed by the true pose of the left camera at capture; pixels on or beside another robot
+within the classification's range (:func:`slam.obstacles.classified_pixels`) and the
+cells of their pixels flagged as obstacles, each pixel placed by the true pose of the
+left camera at capture; pixels on or beside another robot
 (its true position at capture) are left out and counted. At the end the cells are scored
 like a map (:func:`sim.evaluation.map_quality.score_obstacles`).
 """
@@ -15,8 +16,8 @@ import numpy as np
 
 from sim.evaluation.map_quality import MapQualityParams, ObstacleScore, score_obstacles
 from sim.world.terrain import Terrain
-from slam.obstacles import ObstacleParams
-from slam.stereo import StereoCalibration, cut_far_points, depth_to_points
+from slam.obstacles import ObstacleParams, classified_pixels
+from slam.stereo import StereoCalibration, depth_to_points
 
 _OFFSET = 1 << 30  # cell indices are shifted by this into non-negative 31-bit halves of one key
 _COMPACT_EVERY = 64  # images between merges of the collected keys
@@ -47,9 +48,8 @@ class ImageCells:
         camera (OpenCV axes) and the other robots' true xy with their body radii (their
         surroundings are not scored, :attr:`MapQualityParams.robot_margin_m` beyond)."""
         cal, p = self.calibration, self.params
-        cut = cut_far_points(depth, cal, p.max_error_m, p.pixel_error)
-        seen = np.isfinite(cut)
-        cam = depth_to_points(cut, cal)[seen].astype(float)
+        seen = classified_pixels(depth, cal, p)
+        cam = depth_to_points(depth, cal)[seen].astype(float)
         xy = (cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3])[:, :2]
         flagged = obstacle[seen]
         on = np.zeros(len(xy), bool)

@@ -22,6 +22,7 @@ from dm_control import mjcf
 
 from sim.scenario import CameraConfig, TerrainConfig
 from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
+from sim.world.imaging import CameraImaging, ImagingParams
 from sim.world.sensors import StereoRenderer
 from sim.world.terrain import add_terrain, generate_terrain
 from slam.lie import rot_z, se3
@@ -48,9 +49,10 @@ SCENES: dict[str, dict] = {
 
 class RockyScene:
     """A 20 m terrain of scene ``scene`` (``rocks`` overrides its rock count) and a mocap
-    stereo head."""
+    stereo head; with ``imaging`` (sim.world.imaging) its cameras' image formation
+    (noise, exposure) acts on each rendered pair before SGBM."""
 
-    def __init__(self, seed: int = 5, rocks: int | None = None, size_m: float = 20.0, scene: str = "rocky"):
+    def __init__(self, seed: int = 5, rocks: int | None = None, size_m: float = 20.0, scene: str = "rocky", imaging: ImagingParams | None = None):
         keys = SCENES[scene]
         rock_keys = keys["rocks"] | ({} if rocks is None else {"count": rocks})
         cfg = TerrainConfig.model_validate({**keys, "size_m": size_m, "rocks": rock_keys, "texture": {"size_px": 1024}})
@@ -73,6 +75,7 @@ class RockyScene:
         self.camera = CameraConfig(width=WIDTH, height=HEIGHT)
         self.calibration = StereoCalibration.from_intrinsics(self.rig.intrinsics, BASELINE_M, WIDTH, HEIGHT)
         self.stereo = StereoMatcher(self.calibration)
+        self.imaging = None if imaging is None else CameraImaging(imaging, WIDTH, HEIGHT, self.calibration.focal_px, np.random.default_rng(seed))
         self._left = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, self.rig.left_camera)
 
     @cached_property
@@ -91,9 +94,10 @@ class RockyScene:
         self.data.mocap_pos[0], self.data.mocap_quat[0] = T_world_head[:3, 3], q
         mujoco.mj_forward(self.model, self.data)
         frame = self.renderer.render(self.data)
-        depth = self.stereo.depth(frame.left, frame.right)
+        left, right = (frame.left, frame.right) if self.imaging is None else self.imaging.expose(frame.left, frame.right)
+        depth = self.stereo.depth(left, right)
         T_world_cam = se3(self.data.cam_xmat[self._left].reshape(3, 3) @ MUJOCO_TO_OPENCV, self.data.cam_xpos[self._left])
-        return frame.left, depth, T_world_cam
+        return left, depth, T_world_cam
 
     def submap(self, robot: str, index: int, start_xy, end_xy, images: int = 24, yaw_offset: float = 0.0) -> tuple[Submap, np.ndarray]:
         """A submap of a straight drive from ``start_xy`` to ``end_xy`` (head looking along
