@@ -54,7 +54,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, cut_far_points, distance_error, farthest_depth, nearest_depth
+from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, distance_error, farthest_depth, max_depth_for_error, nearest_depth
 
 
 class ObstacleException(ValueError):
@@ -187,7 +187,7 @@ def classified_pixels(depth: np.ndarray, calibration: StereoCalibration, params:
     it, placed too near; the last 4 cm before the cut held 57 % of the falsely flagged step
     pixels (docs/mapping.md). The cut falls at 2.40 m instead of 2.54 m for the LRU at 320x240."""
     far = farthest_depth(np.asarray(depth, dtype=float), calibration, params.pixel_error)
-    return np.isfinite(cut_far_points(far, calibration, params.max_error_m, params.pixel_error))
+    return far <= max_depth_for_error(calibration, params.max_error_m, params.pixel_error)  # NaN and inf: False
 
 
 def _prepare(

@@ -178,16 +178,22 @@ def test_far_point_cut_by_depth_error():
 # --------------------------------------------------------------------------- SGBM on rendered terrain
 
 
-def _median_depth_error(scene_builder, width: int, height: int) -> tuple[float, float]:
+def _render(scene) -> tuple:
+    """One rendered stereo pair with true depth of a ``stereo_scenes`` scene (model, data, rig,
+    camera) and the rig's calibration."""
     from sim.world.sensors import StereoRenderer
 
-    model, data, rig, camera = scene_builder(width, height)
+    model, data, rig, camera = scene
     renderer = StereoRenderer(model, rig, camera)
     try:
         frame = renderer.render(data, with_depth=True)
     finally:
         renderer.close()
-    cal = StereoCalibration.from_intrinsics(rig.intrinsics, rig.baseline_m, width, height)
+    return frame, StereoCalibration.from_intrinsics(rig.intrinsics, rig.baseline_m, camera.width, camera.height)
+
+
+def _median_depth_error(scene_builder, width: int, height: int) -> tuple[float, float]:
+    frame, cal = _render(scene_builder(width, height))
     est = StereoMatcher(cal).depth(frame.left, frame.right)
     gt = frame.depth
     in_range = (gt >= 2.0) & (gt <= 6.0)
@@ -222,15 +228,7 @@ def test_sgbm_borders_outside_the_valid_region_are_invalid():
     as the rest."""
     from stereo_scenes import procedural_terrain_scene
 
-    from sim.world.sensors import StereoRenderer
-
-    model, data, rig, camera = procedural_terrain_scene(320, 240)
-    renderer = StereoRenderer(model, rig, camera)
-    try:
-        frame = renderer.render(data, with_depth=True)
-    finally:
-        renderer.close()
-    cal = StereoCalibration.from_intrinsics(rig.intrinsics, rig.baseline_m, 320, 240)
+    frame, cal = _render(procedural_terrain_scene(320, 240))
     matcher = StereoMatcher(cal)
     est = matcher.depth(frame.left, frame.right)
     assert not np.isfinite(est[~matcher.valid_region]).any()
@@ -259,15 +257,8 @@ def test_noise_in_a_textureless_sky_gives_no_depth_in_the_mapping_range():
     from stereo_scenes import procedural_terrain_scene
 
     from sim.world.imaging import GUPPY_PRO_F125B, CameraImaging
-    from sim.world.sensors import StereoRenderer
 
-    model, data, rig, camera = procedural_terrain_scene(320, 240, pitch_deg=17.0, preset="etna")
-    renderer = StereoRenderer(model, rig, camera)
-    try:
-        frame = renderer.render(data, with_depth=True)
-    finally:
-        renderer.close()
-    cal = StereoCalibration.from_intrinsics(rig.intrinsics, rig.baseline_m, 320, 240)
+    frame, cal = _render(procedural_terrain_scene(320, 240, pitch_deg=17.0, preset="etna"))
     imaging = CameraImaging(GUPPY_PRO_F125B, 320, 240, cal.focal_px, np.random.default_rng(1))
     for _ in range(20):  # let the auto exposure settle on the scene
         left, right = imaging.expose(frame.left, frame.right)
