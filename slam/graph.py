@@ -80,6 +80,12 @@ Cauchy weights (eq. 4.11) change only on relinearisation: with the default 0.01 
 it agrees within 1e-5. Cost (2-core machine, 3 robots, ~400 factors and ~310 variables, one detection per
 update): about 2 ms per update in the local reference topology (1.2 ms ``ISAM2.update``, 0.3 ms estimate),
 5 ms in the sequential one; a marginal covariance 1-2 ms; batch Levenberg-Marquardt 50-80 ms.
+
+The bookkeeping of an update grows with what changed, not with the graph: the factors the inputs define are kept
+input by input (rebuilt from all inputs only after a recovery dropped one, and in the sequential topology, where
+a late pose can change any ``u`` of its frame), the ones not yet in iSAM2 apart from them, and the estimate is read
+per variable (``ISAM2.calculateEstimatePose3``) unless the whole of it is asked for (:meth:`MultiRobotGraph.estimate`
+and the like). ``python -m slam.bench`` measures it (docs/slam.md, its table).
 """
 
 from __future__ import annotations
@@ -318,17 +324,25 @@ class MultiRobotGraph:
         self.params = params
         self._factorization = "QR" if params.topology is Topology.SEQUENTIAL else "CHOLESKY"
         self._isam = self._new_isam()
-        self._estimate = gtsam.Values()
+        self._values: gtsam.Values | None = gtsam.Values()  # the estimate if computed (:attr:`_estimate`), else None
         self._initial = gtsam.Values()  # every variable's value when it entered iSAM2
         self._keys: dict[Node, int] = {}
         self._nodes: dict[int, Node] = {}  # keys are allocated only for variables entering iSAM2
         self._counters: Counter[str] = Counter()  # keys allocated per kind
         self._known: set[Node] = set()  # nodes in the estimate
+        self._robots: set[str] = set()  # robots with a submap origin or a pose in the estimate
+        self._latest: dict[str, int] = {}  # per robot, its latest submap origin in the estimate
         self._switches: dict[tuple[str, int], _Registered] = {}
         self._poses: dict[tuple[str, float], _Registered] = {}
         self._measured: list[_Factor] = []  # d, o and c in order of arrival
         self._in_isam: dict[tuple, tuple[int, _Factor]] = {}  # factor id -> (iSAM2 factor index, factor)
         self._derived: dict[tuple, _Factor] = {}  # prior, w, v and u factors built so far, by id (inputs never change)
+        # what the inputs define, kept up to date input by input (:meth:`_wanted_factors`); None: rebuild from the inputs
+        self._wanted: dict[tuple, _Factor] | None = None
+        self._waiting: dict[tuple, _Factor] = {}  # the wanted factors not in iSAM2 (whether tied or connected or not)
+        self._referenced: set[Node] = set()  # robot poses the measured factors (not dropped) refer to
+        self._ends: dict[str, int] | None = {}  # :meth:`_spine_ends`, kept up to date; None: recompute
+        self._audit = False  # the wanted factors were rebuilt: a factor in iSAM2 may have left them
         sigmas = [params.prior_sigma_rad] * 3 + [params.prior_sigma_m] * 3
         self._prior = _Factor(FactorType.PRIOR, (("s", self.owner, 0),), np.eye(4), np.diag(np.square(sigmas)))
         self._dropped: dict[tuple, _Factor] = {}  # factors left out for good by a recovery, by id
@@ -346,6 +360,9 @@ class MultiRobotGraph:
         what = f"frame switch {robot} {index_from}->{index_from + 1}"
         entry = _Registered(_time(t, f"{what}: t"), index_from, _pose(T_from_to, f"{what}: T_from_to"), _covariance(cov, f"{what}: cov"))
         self._register(self._switches, (robot, index_from), entry, what)
+        if self._ends is not None:
+            self._advance_end(robot)
+        self._want(("w", robot, index_from), lambda: self._switch_factor(robot, index_from))
 
     def add_robot_pose(self, robot: str, t: float, frame_index: int, T_frame_body: np.ndarray, cov: np.ndarray) -> None:
         """The filter's pose ``v`` of ``robot`` at ``t`` in its frame ``frame_index``; it enters the graph once a
@@ -356,6 +373,9 @@ class MultiRobotGraph:
             t, _index(frame_index, f"{what}: frame_index"), _pose(T_frame_body, f"{what}: T_frame_body"), _covariance(cov, f"{what}: cov")
         )
         self._register(self._poses, (robot, t), entry, what)
+        node = ("x", robot, t)
+        if node in self._referenced:
+            self._want(("v", robot, t), lambda: self._pose_factor(node))
 
     def add_detection(self, robot_a: str, robot_b: str, t: float, T_a_b: np.ndarray, cov: np.ndarray) -> None:
         """Detection ``d`` of ``robot_b`` by ``robot_a`` at ``t`` (eq. 4.7): ``x[b,t] = x[a,t] (+) T_a_b``."""
@@ -486,19 +506,20 @@ class MultiRobotGraph:
         return out
 
     def connected_robots(self) -> list[str]:
-        return sorted({robot for kind, robot, _ in self._known if kind != "l"})
+        return sorted(self._robots)
 
     def latest_submap(self, robot: str) -> int | None:
-        return max((i for kind, r, i in self._known if kind == "s" and r == robot), default=None)
+        return self._latest.get(robot)
 
     def factor_counts(self) -> dict[str, int]:
-        counts = Counter(f.type.value for _, f in self._in_isam.values())
-        return {t.value: counts[t.value] for t in FactorType}
+        counts = Counter(f.type for _, f in self._in_isam.values())
+        return {t.value: counts[t] for t in FactorType}
 
     def pending_count(self) -> int:
         """Factors the inputs define that are not in the estimate (not yet connected or tied; not the dropped, nor
         those GNC rejected: :meth:`rejected_factors`)."""
-        return sum(fid not in self._in_isam for fid in self._desired())
+        self._wanted_factors()
+        return sum(fid not in self._rejected for fid in self._waiting)
 
     def dropped_factors(self) -> list[str]:
         """Every factor a recovery left out for good (:class:`GraphRecovery`), as ``type: node -> node``."""
@@ -546,7 +567,37 @@ class MultiRobotGraph:
         table[key] = entry
 
     def _measure(self, kind: FactorType, nodes: tuple[Node, Node], T, cov, what: str) -> None:
-        self._measured.append(_Factor(kind, nodes, _pose(T, f"{what}: transform"), _covariance(cov, f"{what}: cov")))
+        f = _Factor(kind, nodes, _pose(T, f"{what}: transform"), _covariance(cov, f"{what}: cov"))
+        self._measured.append(f)
+        for node in nodes:
+            if node[0] == "x" and node not in self._referenced:
+                self._referenced.add(node)
+                if (node[1], node[2]) in self._poses:
+                    self._want(("v", node[1], node[2]), lambda node=node: self._pose_factor(node))
+        self._want((kind.value, len(self._measured) - 1), lambda: f)
+
+    def _want(self, fid: tuple, build: Callable[[], _Factor]) -> None:
+        """A new input defines factor ``fid`` (built by ``build``): add it to the wanted factors in the local
+        reference topology; in the sequential one a new input can change any ``u`` of its frame, so the wanted
+        factors are rebuilt from the inputs (:meth:`_wanted_factors`)."""
+        if self._wanted is None or fid in self._wanted or fid in self._dropped:
+            return
+        if self.params.topology is Topology.SEQUENTIAL:
+            self._wanted = None
+            return
+        f = self._wanted[fid] = self._derived.get(fid) or build()
+        if f.type not in _ROBUST:
+            self._derived[fid] = f
+        if fid not in self._in_isam:
+            self._waiting[fid] = f
+
+    def _switch_factor(self, robot: str, i: int) -> _Factor:
+        w = self._switches[(robot, i)]
+        return _Factor(FactorType.FRAME_SWITCH, (("s", robot, i), ("s", robot, i + 1)), w.T, w.cov)
+
+    def _pose_factor(self, node: Node) -> _Factor:
+        v = self._poses[(node[1], node[2])]
+        return _Factor(FactorType.FILTER_POSE, (("s", node[1], v.frame), node), v.T, v.cov)
 
     def _key(self, node: Node) -> int:
         key = self._keys.get(node)
@@ -557,19 +608,43 @@ class MultiRobotGraph:
             self._nodes[key] = node
         return key
 
+    @property
+    def _estimate(self) -> gtsam.Values:
+        """The whole estimate, computed from iSAM2 on first use after an update (an update only marks it stale)."""
+        if self._values is None:
+            self._values = self._isam.calculateEstimate()
+        return self._values
+
     def _value(self, node: Node) -> np.ndarray | None:
-        return self._estimate.atPose3(self._keys[node]).matrix() if node in self._known else None
+        """One variable's estimate: from the whole estimate if computed, else from iSAM2 alone."""
+        if node not in self._known:
+            return None
+        key = self._keys[node]
+        return (self._values.atPose3(key) if self._values is not None else self._isam.calculateEstimatePose3(key)).matrix()
+
+    def _enter(self, nodes) -> None:
+        """``nodes`` are in the estimate now."""
+        self._known.update(nodes)
+        for kind, robot, index in nodes:
+            if kind != "l":
+                self._robots.add(robot)
+            if kind == "s" and index > self._latest.get(robot, -1):
+                self._latest[robot] = index
 
     def _spine_ends(self) -> dict[str, int]:
         """Per robot, the last submap index its registered frame switches (none dropped) tie to ``s[r,0]``."""
-        ends: dict[str, int] = {}
-        for robot, _ in self._switches:
-            if robot not in ends:
-                end = 0
-                while (robot, end) in self._switches and ("w", robot, end) not in self._dropped:
-                    end += 1
-                ends[robot] = end
-        return ends
+        if self._ends is None:
+            self._ends = {}
+            for robot, _ in self._switches:
+                if robot not in self._ends:
+                    self._advance_end(robot)
+        return self._ends
+
+    def _advance_end(self, robot: str) -> None:
+        end = self._ends.get(robot, 0)
+        while (robot, end) in self._switches and ("w", robot, end) not in self._dropped:
+            end += 1
+        self._ends[robot] = end
 
     def _tied(self, node: Node, ends: dict[str, int]) -> bool:
         """Whether ``node`` is tied into the topology of Fig. 4.2b (module docstring): ``s[r,i]`` with no gap in
@@ -588,11 +663,15 @@ class MultiRobotGraph:
         """``(removed, addable, initial)``: ids of factors in iSAM2 no longer desired; pending factors, tied into
         the topology, whose variables are in the estimate or initialised (content order); new variables' values.
         ``include_rejected``: the measured factors GNC rejected count as desired (what a GNC run judges)."""
-        desired = self._desired(include_rejected)
-        removed = [fid for fid in self._in_isam if fid not in desired]
+        wanted = self._wanted_factors()
+        excluded = {} if include_rejected else self._rejected
+        if self._audit:
+            removed = [fid for fid in self._in_isam if fid not in wanted or fid in excluded]
+        else:  # iSAM2 holds only wanted factors: what leaves it is what GNC rejected
+            removed = sorted((fid for fid in excluded if fid in self._in_isam), key=lambda fid: self._in_isam[fid][0])
         ends = self._spine_ends()
         pending = sorted(
-            ((fid, f) for fid, f in desired.items() if fid not in self._in_isam and all(self._tied(n, ends) for n in f.nodes)),
+            ((fid, f) for fid, f in self._waiting.items() if fid not in excluded and all(self._tied(n, ends) for n in f.nodes)),
             key=lambda item: item[1].signature,
         )
         initial = self._initialise([f for _, f in pending])
@@ -617,14 +696,20 @@ class MultiRobotGraph:
         result = self._isam.update(graph, values, [self._in_isam[fid][0] for fid in removed])
         for _ in range(extra_iterations):
             self._isam.update()
-        estimate = self._isam.calculateEstimate()
-        for fid in removed:
-            del self._in_isam[fid]
-        for (fid, f), index in zip(addable, result.getNewFactorsIndices()):
-            self._in_isam[fid] = (index, f)
+        self._settle(removed, addable, result.getNewFactorsIndices())
         self._initial.insert(values)
-        self._known.update(initial)
-        self._estimate = estimate
+        self._enter(initial)
+
+    def _settle(self, removed: list[tuple], addable: list[tuple[tuple, _Factor]], indices) -> None:
+        """Bookkeeping after iSAM2 took ``addable`` (at factor ``indices``) and left ``removed``."""
+        for fid in removed:
+            _, f = self._in_isam.pop(fid)
+            if fid in self._wanted:
+                self._waiting[fid] = f
+        for (fid, f), index in zip(addable, indices):
+            self._in_isam[fid] = (index, f)
+            self._waiting.pop(fid, None)
+        self._values, self._audit = None, False
 
     def _rebuild(self, seed: gtsam.Values, extra_iterations: int) -> None:
         """A fresh iSAM2 over the factors in the estimate and the addable pending ones, in one update (one
@@ -649,11 +734,12 @@ class MultiRobotGraph:
         result = isam.update(graph, values, [], rooted)
         for _ in range(extra_iterations):
             isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], rooted)
-        estimate = isam.calculateEstimate()
-        self._isam, self._estimate = isam, estimate
-        self._in_isam = {fid: (index, f) for (fid, f), index in zip(kept + addable, result.getNewFactorsIndices())}
+        self._isam = isam
+        self._settle(removed, [], [])  # what left goes back to waiting
+        self._in_isam = {}  # the fresh iSAM2 holds the kept and the added factors, at new indices
+        self._settle([], kept + addable, result.getNewFactorsIndices())
         self._initial.insert(new_values)
-        self._known.update(initial)
+        self._enter(initial)
 
     def _recover(self, exc: Exception, t: float | None, extra_iterations: int) -> None:
         """After iSAM2 failed (module docstring): rebuild, dropping offending new factors, then re-seeding from
@@ -661,7 +747,11 @@ class MultiRobotGraph:
         error = next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
         named = self._named_node(exc)
         dropped: list[str] = []
-        seed, fallbacks, action = self._estimate, ["levenberg_marquardt", "qr"], RECOVERY_ACTIONS[0]
+        # the estimate before the failed update: iSAM2's own is unusable now; its linearisation point is within
+        # the relinearisation threshold of it
+        if self._values is None:
+            self._values = gtsam.Values(self._isam.getLinearizationPoint())
+        seed, fallbacks, action = self._values, ["levenberg_marquardt", "qr"], RECOVERY_ACTIONS[0]
         while True:
             try:
                 self._rebuild(seed, extra_iterations)
@@ -670,7 +760,8 @@ class MultiRobotGraph:
             except _GTSAM_ERRORS as again:
                 victim = self._offender(again)
                 if victim is not None:
-                    self._dropped[victim] = self._desired()[victim]
+                    self._dropped[victim] = self._wanted_factors()[victim]
+                    self._wanted = self._ends = None  # rebuilt without it
                     dropped.append(_describe(self._dropped[victim]))
                     continue
                 if not fallbacks:
@@ -788,30 +879,34 @@ class MultiRobotGraph:
         except _GTSAM_ERRORS:
             return self._estimate
 
-    def _desired(self, include_rejected: bool = False) -> dict[tuple, _Factor]:
-        """Every factor the inputs so far define, by a stable id (in iSAM2 or pending); without the measured
-        factors GNC rejected unless ``include_rejected`` (their robot poses stay, with their filter poses)."""
-        desired: dict[tuple, _Factor] = {("prior",): self._prior}
-        measured = [f for seq, f in enumerate(self._measured) if (f.type.value, seq) not in self._dropped]
-        referenced = sorted({n for f in measured for n in f.nodes if n[0] == "x" and (n[1], n[2]) in self._poses})
+    def _wanted_factors(self) -> dict[tuple, _Factor]:
+        """Every factor the inputs so far define, by a stable id (in iSAM2 or pending), the measured factors GNC
+        rejected included (their robot poses stay, with their filter poses); dropped factors excluded. Kept up to
+        date input by input (:meth:`_want`); rebuilt from the inputs after a drop and, in the sequential
+        topology, after any input."""
+        if self._wanted is not None:
+            return self._wanted
+        wanted: dict[tuple, _Factor] = {("prior",): self._prior}
+        measured = {fid: f for seq, f in enumerate(self._measured) if (fid := (f.type.value, seq)) not in self._dropped}
+        self._referenced = {n for f in measured.values() for n in f.nodes if n[0] == "x"}
+        referenced = sorted(n for n in self._referenced if (n[1], n[2]) in self._poses)
         if self.params.topology is Topology.LOCAL_REFERENCE:
-            for (robot, i), w in self._switches.items():
+            for robot, i in self._switches:
                 fid = ("w", robot, i)
-                desired[fid] = self._derived.get(fid) or _Factor(FactorType.FRAME_SWITCH, (("s", robot, i), ("s", robot, i + 1)), w.T, w.cov)
+                wanted[fid] = self._derived.get(fid) or self._switch_factor(robot, i)
             for node in referenced:
-                v, fid = self._poses[(node[1], node[2])], ("v", node[1], node[2])
-                desired[fid] = self._derived.get(fid) or _Factor(FactorType.FILTER_POSE, (("s", node[1], v.frame), node), v.T, v.cov)
+                fid = ("v", node[1], node[2])
+                wanted[fid] = self._derived.get(fid) or self._pose_factor(node)
         else:
-            self._sequential(desired, referenced)
-        self._derived.update(desired)
-        for seq, f in enumerate(self._measured):
-            desired[(f.type.value, seq)] = f
+            self._sequential(wanted, referenced)
+        self._derived.update(wanted)
+        wanted.update(measured)
         for fid in self._dropped:
-            desired.pop(fid, None)
-        if not include_rejected:
-            for fid in self._rejected:
-                desired.pop(fid, None)
-        return desired
+            wanted.pop(fid, None)
+        self._wanted = wanted
+        self._waiting = {fid: f for fid, f in wanted.items() if fid not in self._in_isam}
+        self._audit = True
+        return wanted
 
     def _sequential(self, desired: dict[tuple, _Factor], referenced: list[Node]) -> None:
         """u factors (eq. 4.8, 4.9) along each robot's frame: s_k, its poses in the graph, s_{k+1}, by time."""

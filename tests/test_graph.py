@@ -245,6 +245,51 @@ def test_late_and_out_of_order_inputs_give_the_same_estimate(params):
     assert removed > 0 if params.topology is Topology.SEQUENTIAL else removed == 0
 
 
+class RebuildingGraph(MultiRobotGraph):
+    """A graph that forgets its input-by-input bookkeeping before every update: what it wants in iSAM2 is rebuilt
+    from all inputs each time (the reference for the bookkeeping of :class:`MultiRobotGraph`)."""
+
+    def update(self, *args, **kwargs):
+        self._wanted = self._ends = None
+        return super().update(*args, **kwargs)
+
+
+@pytest.mark.parametrize(
+    "params", [LOCAL, SEQ, GraphParams(robust=RobustKernel.GNC)], ids=["local_reference", "sequential", "gnc"]
+)
+def test_bookkeeping_kept_input_by_input_equals_one_rebuilt_from_all_inputs(params):
+    """Shuffled inputs in chunks, a duplicated one, two of six detections grossly wrong: every update adds, removes
+    and initialises the same as with the bookkeeping rebuilt from scratch, and the estimate, the waiting factors
+    and the per-robot summaries end the same."""
+    robots, inputs, rng = team(6)
+    detections = [k for k, (method, _) in enumerate(inputs) if method == "add_detection"]
+    for k in detections[1::3]:  # two of six grossly wrong
+        args = inputs[k][1]
+        inputs[k] = ("add_detection", (*args[:3], misread(args[3], rng, 1.0, math.radians(20.0)), args[4]))
+    shuffled = [inputs[i] for i in np.random.default_rng(7).permutation(len(inputs))]
+    shuffled.insert(20, shuffled[3])  # a duplicate
+    graphs = {cls: cls("lru1", params) for cls in (MultiRobotGraph, RebuildingGraph)}
+    for chunk in split(shuffled, 9):
+        stats = {}
+        for cls, graph in graphs.items():
+            feed(graph, chunk)
+            s = graph.update(t=1.0)
+            stats[cls] = (s.factors_added, s.variables_added, s.factors_removed, graph.pending_count())
+        assert stats[MultiRobotGraph] == stats[RebuildingGraph]
+    kept, rebuilt = graphs.values()
+    assert kept.signatures() == rebuilt.signatures() and kept.rejected_factors() == rebuilt.rejected_factors()
+    assert kept.variables() == rebuilt.variables()
+    for key, T in kept.estimate().items():
+        assert np.array_equal(T, rebuilt.estimate()[key])
+    nodes = kept.variables().values()
+    assert kept.connected_robots() == sorted({r for kind, r, _ in nodes if kind != "l"}) == [r.name for r in sorted(robots, key=lambda r: r.name)]
+    for robot in kept.connected_robots():
+        assert kept.latest_submap(robot) == max(i for kind, r, i in nodes if kind == "s" and r == robot)
+    if params.robust is RobustKernel.GNC:
+        assert kept.rejected_factors()
+    assert (kept.factor_counts()["u"] > 0) == (params.topology is Topology.SEQUENTIAL)
+
+
 def test_sequential_replaces_the_odometry_factor_a_late_pose_splits():
     rng = np.random.default_rng(5)
     a, b = drive("lru1", rng, 0.0, 0.0, 0.0), drive("lru2", rng, 0.0, 2.0, 0.0)
