@@ -95,6 +95,28 @@ def test_paired_comparison_on_a_hand_made_table():
     assert c["wilcoxon_p"] == pytest.approx(2 / 2**6)  # exact two-sided: all six differences positive, no ties
 
 
+def test_sweep_curves_and_plot_on_a_hand_made_table(tmp_path):
+    """One numeric sweep key: per label, robot and swept value the mean and CI over seeds; the runs' labels are
+    their variant names without the sweep part; no curves for two sweep keys or a non-numeric one."""
+    values = {("a", 0.0): [1.0, 3.0], ("a", 0.5): [2.0, 4.0, 6.0], ("b,c", 0.0): [5.0]}
+    rows, runs = [], []
+    for (label, x), vs in values.items():
+        for seed, v in enumerate(vs):
+            rows.append((f"{label},k={x}", seed, "r", "completed", v))
+            runs.append({"variant": f"{label},k={x}", "params": {"k": x}})
+    rows.append(("a,k=0.5", 9, "r", "failed", 100.0))
+    index = {"config": {"sweep": {"k": [0.0, 0.5]}, "variants": [{"label": "a"}, {"label": "b,c"}]}, "runs": runs}
+    curves = report.sweep_curves(table(rows), "m", index).set_index(["label", "x"])
+    assert list(curves.index) == [("a", 0.0), ("a", 0.5), ("b,c", 0.0)]
+    assert curves.loc[("a", 0.5), "n"] == 3 and curves.loc[("a", 0.5), "mean"] == pytest.approx(4.0)  # the failed run left out
+    half = 4.302652729911275 * 2.0 / math.sqrt(3)  # t(0.975, 2 dof) * s / sqrt(n)
+    assert (curves.loc[("a", 0.5), "ci95_low"], curves.loc[("a", 0.5), "ci95_high"]) == pytest.approx((4.0 - half, 4.0 + half))
+    assert curves.loc[("b,c", 0.0), "n"] == 1 and math.isnan(curves.loc[("b,c", 0.0), "ci95_low"])
+    assert report.sweep_plot(curves.reset_index(), "m", "k", tmp_path / "sweep.png") and (tmp_path / "sweep.png").stat().st_size > 0
+    for sweep in ({"k": [0.0, 0.5], "j": [1, 2]}, {"k": ["low", "high"]}):
+        assert report.sweep_curves(table(rows), "m", {**index, "config": {**index["config"], "sweep": sweep}}).empty
+
+
 # --------------------------------------------------------------------------- the batch file
 
 

@@ -6,6 +6,8 @@ Files written into the batch folder by :func:`write_report`::
     summary.csv              per variant, robot and metric: n, mean, median, std, 95 % CI
     comparisons.csv          each variant against the baseline over the same seeds
     plots/<metric>.png       box plots of the report's metrics per variant (one panel per robot)
+    plots/sweep_<metric>.png with one numeric sweep key: each metric against it, one line per
+                             variant label (mean and 95 % CI over seeds, seeds as dots)
     report.md                the report linking them
 
 Tidy table columns: ``run``, ``variant``, ``seed``, ``status``, ``error``,
@@ -190,6 +192,56 @@ def box_plot(table: pd.DataFrame, metric: str, variants: list[str], path: Path) 
     return True
 
 
+def sweep_curves(table: pd.DataFrame, metric: str, index: dict) -> pd.DataFrame:
+    """``metric`` against the batch's sweep when it has exactly one key with numeric values: per variant label
+    (``all`` without labelled variants), robot and swept value the completed runs' n, mean and 95 % CI, and
+    the values themselves; empty otherwise. A variant's label is its name without the sweep part
+    (:func:`sim.batch.spec.expand` appends ``,key=value``)."""
+    columns = ["label", "robot", "x", "n", "mean", "ci95_low", "ci95_high", "values"]
+    sweep = index["config"].get("sweep") or {}
+    if len(sweep) != 1:
+        return pd.DataFrame(columns=columns)
+    ((key, values),) = sweep.items()
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        return pd.DataFrame(columns=columns)
+    x_of = {run["variant"]: float(run["params"][key]) for run in index["runs"]}
+    labelled = bool(index["config"].get("variants"))
+    rows = metric_rows(table, metric)
+    rows = rows.assign(label=[v.rsplit(",", 1)[0] if labelled else "all" for v in rows["variant"]], x=rows["variant"].map(x_of))
+    out = []
+    for (label, robot, x), group in rows.groupby(["label", "robot", "x"], sort=False):
+        v = group["value"].to_numpy(float)
+        out.append([label, robot, x, len(v), float(np.mean(v)), *mean_ci(v), v])
+    return pd.DataFrame(out, columns=columns).sort_values(["robot", "label", "x"], kind="stable", ignore_index=True)
+
+
+def sweep_plot(curves: pd.DataFrame, metric: str, key: str, path: Path) -> bool:
+    """:func:`sweep_curves` drawn: one panel per robot, a line per label with its CI as error bars, seeds as
+    dots; False when there is nothing to draw."""
+    if curves.empty:
+        return False
+    robots = list(dict.fromkeys(curves["robot"]))
+    fig, axes = plt.subplots(1, len(robots), figsize=(4.2 * len(robots) + 1, 4.2), dpi=110, squeeze=False)
+    span = float(np.ptp(curves["x"])) or 1.0
+    for ax, robot in zip(axes[0], robots):
+        for i, (label, line) in enumerate(curves[curves["robot"] == robot].groupby("label", sort=False)):
+            shift = (i - 1) * 0.012 * span  # labels side by side at each value
+            err = np.abs(np.vstack([line["mean"] - line["ci95_low"], line["ci95_high"] - line["mean"]]).astype(float))
+            bars = ax.errorbar(line["x"] + shift, line["mean"], yerr=np.nan_to_num(err), marker="o", capsize=3, label=label)
+            for x, values in zip(line["x"], line["values"]):
+                ax.plot(np.full(len(values), x + shift), values, ".", color=bars[0].get_color(), alpha=0.4)
+        ax.set_title(str(robot), fontsize=9)
+        ax.set_xlabel(key)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    axes[0][0].set_ylabel(metric)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return True
+
+
 def _fmt(value: Any, digits: int = 4) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "-"
@@ -249,9 +301,12 @@ def write_report(batch_dir: Path, metrics: list[str] | None = None) -> Path:
         if rows.empty:
             lines.append("No numeric value in any completed run's metrics.")
             continue
-        plot = f"plots/{re.sub(r'[^A-Za-z0-9_.-]', '_', metric)}.png"
-        if box_plot(table, metric, variants, batch_dir / plot):
-            lines += [f"![{metric}]({plot})", ""]
+        name = re.sub(r"[^A-Za-z0-9_.-]", "_", metric)
+        swept = next(iter(index["config"].get("sweep") or {}), "")
+        if sweep_plot(sweep_curves(table, metric, index), metric, swept, batch_dir / f"plots/sweep_{name}.png"):
+            lines += [f"![{metric} against the sweep](plots/sweep_{name}.png)", ""]
+        if box_plot(table, metric, variants, batch_dir / f"plots/{name}.png"):
+            lines += [f"![{metric}](plots/{name}.png)", ""]
         lines += ["| variant | robot | n | mean | median | std | 95 % CI |", "|---|---|---|---|---|---|---|"]
         for r in rows.itertuples():
             ci = f"[{_fmt(r.ci95_low)}, {_fmt(r.ci95_high)}]"
