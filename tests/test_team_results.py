@@ -65,6 +65,20 @@ def test_final_trajectory_ends_at_the_final_graphs_estimate(results):
             assert np.allclose(T, graph.online_pose(name, int(j), np.linalg.solve(origins[j], T_first_body)), atol=1e-6)
 
 
+def test_final_graph_metrics_are_those_of_the_final_trajectory(results):
+    """``slam.final_graph`` scores the trajectory by the final graph (``slam_final.tum``) against the truth in the
+    start frame (``gt_start.tum``), as ``slam.ate_m`` scores the online one."""
+    _, out, metrics = results
+    for name in ROBOTS:
+        slam = metrics["robots"][name]["slam"]
+        truth = read_tum(out / "trajectories" / f"{name}.gt_start.tum")
+        final = trajectory_metrics(read_tum(out / "trajectories" / f"{name}.slam_final.tum"), truth)[0]
+        online = trajectory_metrics(read_tum(out / "trajectories" / f"{name}.slam.tum"), truth)[0]
+        assert slam["ate_m"]["rmse"] == pytest.approx(online["ate_m"]["rmse"], abs=1e-6)
+        assert slam["final_graph"]["ate_m"]["rmse"] == pytest.approx(final["ate_m"]["rmse"], abs=1e-6)
+        assert slam["final_graph"]["final_error_m"] == pytest.approx(final["final_error_m"], abs=1e-6)
+
+
 def test_beliefs_are_the_slam_logs_rows(results):
     run, out, _ = results
     for name in ROBOTS:

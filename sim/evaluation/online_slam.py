@@ -50,9 +50,11 @@ class SlamPlot:
 
 
 def slam_section(out: Path, name: str, slam: SlamInput | None, truth: TeamTruth, recorder=None) -> tuple[dict[str, Any] | None, SlamPlot | None]:
-    """Metrics of one robot's SLAM: its own online trajectory, its beliefs about its
-    peers, its graph and its detections; and what ``slam.png`` draws of it. Writes its
-    trajectory's TUM file (and into the recording, if given). None without the graph."""
+    """Metrics of one robot's SLAM: its own online trajectory, the same times by the final
+    graph (``final_graph``: every loop closure applied to the whole trajectory, also those
+    that came after a pose was used), its beliefs about its peers, its graph and its
+    detections; and what ``slam.png`` draws of it. Writes its trajectory's TUM file (and
+    into the recording, if given). None without the graph."""
     if slam is None:
         return None, None
     estimate = slam.estimate
@@ -68,6 +70,10 @@ def slam_section(out: Path, name: str, slam: SlamInput | None, truth: TeamTruth,
         section.update(metrics)
     except trajectory.EvaluationError as exc:
         section = {"status": f"not evaluated: {exc}"}
+    try:
+        section["final_graph"], _ = trajectory.trajectory_metrics(slam.final_estimate, start.trajectory)
+    except trajectory.EvaluationError as exc:
+        section["final_graph"] = {"status": f"not evaluated: {exc}"}
     edges = [(kind, T_world_start @ _h(a), T_world_start @ _h(b)) for kind, a, b in slam.graph.edges()]
     if recorder is not None:
         _record(recorder, name, slam, T_world_start, edges)
