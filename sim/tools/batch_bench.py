@@ -22,6 +22,9 @@ from sim.batch.execute import execute, plan
 from sim.batch.spec import load_batch
 
 REPO = Path(__file__).resolve().parents[2]
+#: The project's throughput target (README, "Measured"): runs per hour of the 8 s quickstart with two workers.
+TARGET_RUNS_PER_HOUR = 400
+TARGET_WORKERS = 2
 
 
 def bench_one(batch_file: Path, out: Path, workers: int, use_ray: bool) -> dict:
@@ -69,9 +72,12 @@ def main() -> None:
                 row["scaling_efficiency"] = row["runs_per_hour"] / (workers * one["runs_per_hour"]) if one else None
                 rows.append(row)
                 eff = f", scaling efficiency {row['scaling_efficiency']:.2f}" if row["scaling_efficiency"] is not None else ""
-                print(
-                    f"{executor} x{workers}: {row['completed']}/{row['runs']} runs in {row['wall_s']:.1f} s = {row['runs_per_hour']:.0f} runs/h{eff}"
-                )
+                target = ""
+                if workers == TARGET_WORKERS:
+                    met = "met" if row["runs_per_hour"] >= TARGET_RUNS_PER_HOUR else "not met"
+                    target = f" (target >= {TARGET_RUNS_PER_HOUR} runs/h: {met})"
+                done = f"{row['completed']}/{row['runs']} runs in {row['wall_s']:.1f} s"
+                print(f"{executor} x{workers}: {done} = {row['runs_per_hour']:.0f} runs/h{eff}{target}")
     meta = {
         "machine": platform.platform(),
         "python": platform.python_version(),
