@@ -184,11 +184,7 @@ def box_plot(table: pd.DataFrame, metric: str, variants: list[str], path: Path) 
             ax.plot(np.full(len(values), i) + np.linspace(-0.08, 0.08, len(values)), values, "k.", alpha=0.5)
         ax.set_title(str(robot), fontsize=9)
         ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel(metric)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
+    _save(fig, axes, metric, path)
     return True
 
 
@@ -234,12 +230,17 @@ def sweep_plot(curves: pd.DataFrame, metric: str, key: str, path: Path) -> bool:
         ax.set_xlabel(key)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
+    _save(fig, axes, metric, path)
+    return True
+
+
+def _save(fig, axes, metric: str, path: Path) -> None:
+    """Label the first panel with ``metric`` and write the figure to ``path``."""
     axes[0][0].set_ylabel(metric)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
     plt.close(fig)
-    return True
 
 
 def _fmt(value: Any, digits: int = 4) -> str:
