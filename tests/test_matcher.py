@@ -9,10 +9,23 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from slam.lie import roll_pitch, rot_z, rot_zyx, se3, yaw_of
-from slam.matcher import KeypointSelection, MatcherParams, MatchMode, PairQueue, Prior, evaluate_pair, match_pair, prepare, surface_variation
+from slam.matcher import (
+    KeypointSelection,
+    MatcherParams,
+    MatchMode,
+    PairQueue,
+    Prior,
+    evaluate_pair,
+    match_pair,
+    prepare,
+    salient_keypoints,
+    surface_variation,
+)
 from slam.registration import fit_4d, fit_6d, icp, off_line_count, ransac, two_point_4d
+from slam.submap import voxel_filter
 
 
 def random_4d(rng: np.random.Generator) -> np.ndarray:
@@ -255,6 +268,31 @@ def test_geometry_keypoints_reach_beyond_the_obstacles(rendered):
     d_both = np.min(np.linalg.norm(obstacles.points[:, None] - both.points[None], axis=2), axis=1)
     assert np.all(d_both < 0.1)  # each obstacle keypoint is in both's voxel of it
     assert len(both.points) > len(obstacles.points)
+
+
+def test_salient_keypoints_are_thinned_to_the_most_salient_per_cell(rendered):
+    """Salient keypoints keep one voxel centroid per ``salient_spacing_m`` cell, the most
+    salient at the wide radius; with ``both`` every obstacle voxel stays besides them."""
+    (A, _), _, _, _ = rendered
+    pts, obstacle = np.asarray(A.points, float), np.asarray(A.obstacle, bool)
+    p = MatcherParams(keypoints="geometry")
+    thinned = salient_keypoints(pts, np.zeros(len(pts), bool), p)
+    dense = salient_keypoints(pts, np.zeros(len(pts), bool), replace(p, salient_spacing_m=p.keypoint_resolution_m))
+    cells = np.floor(thinned / p.salient_spacing_m).astype(int)
+    assert len(np.unique(cells, axis=0)) == len(thinned) >= 50
+    assert len(dense) > 1.5 * len(thinned)
+    assert np.isin(thinned.view([("", float)] * 3), dense.view([("", float)] * 3)).all()
+    centroids = voxel_filter(pts, np.zeros(len(pts), bool), np.zeros(len(pts)), p.keypoint_resolution_m)[0]
+    _, at = cKDTree(centroids).query(dense)
+    wide = surface_variation(centroids, 2 * p.saliency_radius_m)[at]  # each kept one beats the others of its cell
+    dense_cells = np.floor(dense / p.salient_spacing_m).astype(int)
+    for point, cell in zip(thinned[:40], cells[:40]):
+        same = np.all(dense_cells == cell, axis=1)
+        best = dense[same][np.argmax(wide[same])]
+        np.testing.assert_allclose(point, best, atol=1e-9)
+    both = salient_keypoints(pts, obstacle, p)
+    obstacle_voxels = np.unique(np.floor(pts[obstacle] / p.keypoint_resolution_m).astype(int), axis=0)
+    assert len(both) >= len(obstacle_voxels) + 0.5 * len(thinned)
 
 
 def test_4d_6d_recovers_a_roll_pitch_offset_that_4d_cannot(rendered):
