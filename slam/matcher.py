@@ -84,7 +84,7 @@ class MatcherParams:
     # 0.2 m but averages out at 0.4 m, rock flanks stay salient (docs/matching.md, "Mapping range")
     min_surface_variation_wide: float = 0.02
     # salient keypoints (not obstacle ones) thinned to the most salient per cell of this size: in the realistic world
-    # stereo noise leaves much of the ground weakly salient, 7600 keypoints per submap unthinned (docs/matching.md)
+    # stereo noise leaves much of the ground weakly salient, thousands of keypoints per submap unthinned (docs/matching.md)
     salient_spacing_m: float = 0.2
     keypoint_resolution_m: float = 0.1
     min_known_fraction: float = 0.5  # of the voxels in the descriptor sphere (thesis 0.8; see docs/matching.md)
@@ -186,7 +186,7 @@ _SELECTED = {KeypointSelection.OBSTACLES: "obstacle", KeypointSelection.GEOMETRY
 def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     """Suitability check and keypoints of one submap (6.1.1), or the reason it is
     unsuitable: at least ``min_points`` points and ``min_selected_points`` selected
-    points; keypoints are the selected points filtered at ``keypoint_resolution_m``,
+    points (salient geometry: voxel centroids); keypoints are the selected points filtered at ``keypoint_resolution_m``,
     dropped where less than ``min_known_fraction`` of the voxels in the descriptor sphere
     are known; at least ``min_off_line_keypoints`` keypoints must lie farther than
     ``line_distance_m`` (xy) from a RANSAC line through them. The selection
