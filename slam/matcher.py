@@ -186,12 +186,12 @@ _SELECTED = {KeypointSelection.OBSTACLES: "obstacle", KeypointSelection.GEOMETRY
 def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     """Suitability check and keypoints of one submap (6.1.1), or the reason it is
     unsuitable: at least ``min_points`` points and ``min_selected_points`` selected
-    points (salient geometry: voxel centroids); keypoints are the selected points filtered at ``keypoint_resolution_m``,
-    dropped where less than ``min_known_fraction`` of the voxels in the descriptor sphere
-    are known; at least ``min_off_line_keypoints`` keypoints must lie farther than
-    ``line_distance_m`` (xy) from a RANSAC line through them. The selection
-    (``params.keypoints``): obstacle points (the thesis), or salient geometry
-    (:func:`salient_keypoints`) with or without them."""
+    points. The selection (``params.keypoints``): obstacle points (the thesis), filtered at
+    ``keypoint_resolution_m``, or the voxel centroids of :func:`salient_keypoints` (with
+    or without the obstacle voxels, counted in voxels). Keypoints are dropped where less
+    than ``min_known_fraction`` of the voxels in the descriptor sphere are known; at
+    least ``min_off_line_keypoints`` of them must lie farther than ``line_distance_m``
+    (xy) from a RANSAC line through them."""
     pts = np.asarray(submap.points, dtype=float)
     if len(pts) < params.min_points:
         return "too few points"

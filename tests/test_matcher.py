@@ -292,6 +292,8 @@ def test_salient_keypoints_are_thinned_to_the_most_salient_per_cell(rendered):
         np.testing.assert_allclose(point, best, atol=1e-9)
     both = salient_keypoints(pts, obstacle, p)
     obstacle_voxels = np.unique(np.floor(pts[obstacle] / p.keypoint_resolution_m).astype(int), axis=0)
+    both_voxels = np.unique(np.floor(both / p.keypoint_resolution_m).astype(int), axis=0)
+    assert np.isin(obstacle_voxels.view([("", int)] * 3), both_voxels.view([("", int)] * 3)).all()
     assert len(both) >= len(obstacle_voxels) + 0.5 * len(thinned)
 
 
