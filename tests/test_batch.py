@@ -3,6 +3,8 @@ Ray executors, resuming, and the statistics of the report."""
 
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -188,13 +190,18 @@ def test_check_names_every_invalid_variant_and_runs_nothing(tmp_path):
 # --------------------------------------------------------------------------- running batches
 
 
-def test_pool_batch_records_a_failing_run_summarises_and_resumes_without_rerunning(tmp_path):
+def test_pool_batch_records_a_failing_run_summarises_and_resumes_without_rerunning(tmp_path, monkeypatch):
     path = write_batch(tmp_path, seeds=[1, 2], variants=[*SLOW_FAST, BROKEN], metrics=["distance_m", "camera_frames"])
     out = tmp_path / "out"
+    monkeypatch.setattr(sys, "argv", ["/venv/bin/marsyard", "batch", str(path), "--out", str(out), "--workers", "2"])
     result = invoke("batch", path, "--out", out, "--workers", 2)
     assert result.exit_code == 1, result.output  # not every run completed
     runs = {r["id"]: r for r in read_index(out)["runs"]}
     assert len(runs) == 6
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True).stdout.strip()
+    (invocation,) = read_index(out)["invocations"]
+    assert invocation["command"] == f"marsyard batch {path} --out {out} --workers 2" and invocation["git_commit"] == head
+    assert {r["git_commit"] for r in runs.values()} == {head}
     for variant in ("slow", "fast"):
         for seed in (1, 2):
             run = runs[f"{variant}/seed{seed}"]
@@ -221,6 +228,7 @@ def test_pool_batch_records_a_failing_run_summarises_and_resumes_without_rerunni
     report = (out / "report.md").read_text()
     assert "(plots/distance_m.png)" in report and (out / "plots" / "distance_m.png").stat().st_size > 0
     assert "broken/seed1" in report and "Wilcoxon" in report
+    assert f"| `marsyard batch {path} --out {out} --workers 2` | `{head[:10]}`" in report and f"`{head[:10]}`" in report
     (out / "report.md").unlink()
     assert invoke("report", out, "--metric", "camera_frames").exit_code == 0
     report = (out / "report.md").read_text()
@@ -232,6 +240,7 @@ def test_pool_batch_records_a_failing_run_summarises_and_resumes_without_rerunni
     assert "6 runs, 0 to do" in again.text, again.output
     assert {r["id"]: (r["started"], r["finished"]) for r in read_index(out)["runs"]} == before
     assert {p: p.stat().st_mtime_ns for p in out.glob("runs/*/*/metrics.json")} == mtimes
+    assert len(read_index(out)["invocations"]) == 2  # the resumed part is recorded too
 
     retry = invoke("batch", path, "--out", out, "--retry-failed")
     assert "6 runs, 2 to do" in retry.text, retry.output

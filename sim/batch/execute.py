@@ -45,6 +45,7 @@ from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Any
 
+from sim.batch.provenance import command_line, git_state
 from sim.batch.spec import Batch, RunSpec, scenario_dict
 
 FINAL = ("completed", "failed", "crashed", "timeout")
@@ -112,6 +113,8 @@ class Index:
             "baseline": batch.baseline,
             "params": sorted({k for v in batch.variants for k in v.params}),
             "created": (previous or {}).get("created", now()),
+            # every command that ran (part of) the batch, with the commit of its code (sim.batch.provenance)
+            "invocations": [*(previous or {}).get("invocations", []), {"started": now(), "command": command_line(), **git_state()}],
         }
         self.runs: dict[str, dict[str, Any]] = {}
         for spec in specs:
@@ -129,10 +132,12 @@ class Index:
                 "wall_s": None,
                 "started": None,
                 "finished": None,
+                "git_commit": None,
+                "git_dirty": None,
             }
             before = old.get(spec.id)
             if before is not None and before.get("digest") == entry["digest"] and before.get("status") in FINAL:
-                entry.update({k: before[k] for k in ("status", "error", "wall_s", "started", "finished")})
+                entry.update({k: before.get(k) for k in ("status", "error", "wall_s", "started", "finished", "git_commit", "git_dirty")})
             self.runs[spec.id] = entry
 
     def write(self) -> None:
@@ -146,7 +151,8 @@ class Index:
         self.write()
 
     def finish(self, spec: RunSpec, outcome: Outcome) -> None:
-        self.runs[spec.id].update(status=outcome.status, error=outcome.error, wall_s=outcome.wall_s, finished=now())
+        code = {k: self.header["invocations"][-1][k] for k in ("git_commit", "git_dirty")}
+        self.runs[spec.id].update(status=outcome.status, error=outcome.error, wall_s=outcome.wall_s, finished=now(), **code)
         self.write()
 
     def interrupt(self, spec: RunSpec) -> None:

@@ -19,7 +19,6 @@ import fnmatch
 import json
 import math
 import shutil
-import subprocess
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -29,11 +28,11 @@ import yaml
 from pydantic import Field, ValidationError
 
 from sim.batch.execute import Outcome, run_local
+from sim.batch.provenance import REPO, git_state
 from sim.batch.report import flatten
 from sim.batch.spec import RunSpec
 from sim.scenario import StrictModel
 
-REPO = Path(__file__).resolve().parents[2]
 BASELINES = REPO / "results" / "baselines"
 CONFIG = "regress.yaml"
 FAILING = ("worse", "missing", "failed")
@@ -208,7 +207,7 @@ def update(config: RegressConfig, directory: Path, names: list[str], out: Path) 
             "run_command": f"marsyard run {canonical.scenario} --seed SEED {sets}",
             "scenario": canonical.scenario,
             "set": canonical.set,
-            **_git_state(),
+            **git_state(),
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "seeds": values[name],
         }
@@ -216,15 +215,3 @@ def update(config: RegressConfig, directory: Path, names: list[str], out: Path) 
         path.write_text(json.dumps(baseline, indent=1) + "\n")
         written.append(path)
     return written
-
-
-def _git_state() -> dict[str, Any]:
-    """The commit the code is at, and whether the code (sim, slam, comms, scenarios) differs from it."""
-
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
-
-    try:
-        return {"git_commit": git("rev-parse", "HEAD"), "git_dirty": bool(git("status", "--porcelain", "--", "sim", "slam", "comms", "scenarios"))}
-    except (OSError, subprocess.CalledProcessError):
-        return {"git_commit": None, "git_dirty": None}

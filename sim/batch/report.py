@@ -42,6 +42,7 @@ import pandas as pd
 from scipy import stats
 
 from sim.batch.execute import read_index
+from sim.batch.provenance import REPO
 
 RUN_COLUMNS = ["run", "variant", "seed", "status", "error"]
 #: Keys of metrics.json that the index columns already hold.
@@ -271,12 +272,13 @@ def write_report(batch_dir: Path, metrics: list[str] | None = None) -> Path:
         f"# Batch {index['batch']}",
         "",
         *([index["description"], ""] if index.get("description") else []),
-        f"Base scenario `{index['scenario']}`, batch file `{index['batch_file']}`; seeds {index['config']['seeds']}; "
+        f"Base scenario `{_shown(index['scenario'])}`, batch file `{_shown(index['batch_file'])}`; seeds {index['config']['seeds']}; "
         f"{len(variants)} variants, {len(runs)} runs: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n) + ".",
         "",
         "Tables: [runs.csv](runs.csv) / [runs.parquet](runs.parquet) (one row per run and robot), "
         "[summary.csv](summary.csv) (every numeric metric), [comparisons.csv](comparisons.csv).",
         "",
+        *provenance_lines(index),
         "## Variants",
         "",
         "| variant | completed | not completed |",
@@ -336,6 +338,38 @@ def write_report(batch_dir: Path, metrics: list[str] | None = None) -> Path:
     path = batch_dir / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def provenance_lines(index: dict) -> list[str]:
+    """The report's "Provenance" section: every command that ran part of the batch, with
+    its code's commit, and how many of the completed runs each commit computed."""
+    invocations = index.get("invocations") or []
+    if not invocations:
+        return ["## Provenance", "", "Not recorded (the batch was run before its index kept commits and commands).", ""]
+    lines = ["## Provenance", "", "| started | command | commit |", "|---|---|---|"]
+    for inv in invocations:
+        lines.append(f"| {inv['started']} | `{inv['command']}` | {_commit(inv.get('git_commit'), inv.get('git_dirty'))} |")
+    done = [r for r in index["runs"] if r["status"] == "completed"]
+    per_commit: dict[str, int] = {}
+    for r in done:
+        key = _commit(r.get("git_commit"), r.get("git_dirty"))
+        per_commit[key] = per_commit.get(key, 0) + 1
+    lines += ["", "Completed runs by commit: " + (", ".join(f"{k}: {n}" for k, n in per_commit.items()) or "none") + ".", ""]
+    return lines
+
+
+def _commit(commit: str | None, dirty: bool | None) -> str:
+    if commit is None:
+        return "unknown"
+    return f"`{commit[:10]}`" + (" with uncommitted changes" if dirty else "")
+
+
+def _shown(path: str) -> str:
+    """A path inside the repository relative to its root (reports are committed), others as they are."""
+    try:
+        return str(Path(path).resolve().relative_to(REPO))
+    except ValueError:
+        return path
 
 
 def _pct(value: float) -> str:
