@@ -86,7 +86,7 @@ def test_paired_comparison_on_a_hand_made_table():
     rows = [("base", s, "r", "completed", v) for s, v in enumerate(base)]
     rows += [("other", s, "r", "completed", v + d) for s, (v, d) in enumerate(zip(base, diff))]
     rows += [("other", 6, "r", "completed", 50.0), ("other", 0, "extra_robot", "completed", 1.0)]  # no partner: left out
-    comparisons = report.compare(table(rows), "base", ["m"])
+    comparisons = report.compare(table(rows), [("other", "base")], ["m"])
     assert len(comparisons) == 1
     c = comparisons.iloc[0]
     assert c["robot"] == "r" and c["n_pairs"] == 6
@@ -95,6 +95,8 @@ def test_paired_comparison_on_a_hand_made_table():
     half = 2.570581835636314 * math.sqrt(0.035) / math.sqrt(6)  # t(0.975, 5 dof) * s_d / sqrt(n); s_d^2 = 0.175 / 5
     assert (c["relative_ci95_low"], c["relative_ci95_high"]) == pytest.approx(((0.35 - half) / 3.5, (0.35 + half) / 3.5))
     assert c["wilcoxon_p"] == pytest.approx(2 / 2**6)  # exact two-sided: all six differences positive, no ties
+    (back,) = report.compare(table(rows), [("base", "other")], ["m"]).itertuples()  # the pair the other way round
+    assert (back.robot, back.n_pairs, back.relative_change) == ("r", 6, pytest.approx(-0.35 / 3.85))
 
 
 def test_sweep_curves_and_plot_on_a_hand_made_table(tmp_path):
@@ -138,6 +140,18 @@ def test_variants_times_sweep_and_override_round_trip(tmp_path):
         "b,terrain.rocks.count=9,physics.timestep_s=0.001",
     ]
     assert batch.baseline == batch.variants[0].name
+    assert batch.comparisons == [(v.name, batch.baseline) for v in batch.variants[1:]]
+    pairs = [["b,terrain.rocks.count=3,physics.timestep_s=0.001", "a,terrain.rocks.count=3,physics.timestep_s=0.001"]]
+    assert load_batch(write_batch(tmp_path, seeds=1, variants=[{"label": "a"}, {"label": "b"}], comparisons=[["b", "a"]])).comparisons == [("b", "a")]
+    assert load_batch(
+        write_batch(
+            tmp_path,
+            seeds=2,
+            variants=[{"label": "a"}, {"label": "b"}],
+            sweep={"terrain.rocks.count": [3], "physics.timestep_s": [1e-3]},
+            comparisons=pairs,
+        )
+    ).comparisons == [tuple(pairs[0])]
     specs = batch.specs()
     assert len(specs) == 8 and [s.seed for s in specs[:4]] == [0] * 4  # seed-major
     first = specs[0]
@@ -157,6 +171,8 @@ def test_variants_times_sweep_and_override_round_trip(tmp_path):
         ({"seeds": 1, "variants": [{"label": "x"}, {"label": "x"}]}, "variant labels must be unique"),
         ({"seeds": 1, "variants": [{"label": "x"}], "baseline": "y"}, "baseline: got 'y': not a variant"),
         ({"seeds": 1, "variants": [{"label": "x", "set": {"a.b": 1}}], "sweep": {"a.b": [1, 2]}}, "keys ['a.b'] are swept too"),
+        ({"seeds": 1, "variants": [{"label": "x"}, {"label": "z"}], "comparisons": [["x", "y"]]}, "comparisons: ['y'] not variants"),
+        ({"seeds": 1, "variants": [{"label": "x"}], "comparisons": [["x", "x"]]}, "compare a variant with itself"),
         ({"seeds": 1, "timeout_s": True}, "timeout_s: got True"),  # the batch file's numbers are strict, as the scenario's
         ({"seeds": 1, "timeout_s": float("nan")}, "timeout_s: got nan"),
     ],

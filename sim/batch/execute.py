@@ -111,6 +111,7 @@ class Index:
             "extra_overrides": batch.extra,
             "variants": [v.name for v in batch.variants],
             "baseline": batch.baseline,
+            "comparisons": [list(pair) for pair in batch.comparisons],
             "params": sorted({k for v in batch.variants for k in v.params}),
             "created": (previous or {}).get("created", now()),
             # every command that ran (part of) the batch, with the commit of its code (sim.batch.provenance)

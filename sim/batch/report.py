@@ -4,7 +4,8 @@ Files written into the batch folder by :func:`write_report`::
 
     runs.csv, runs.parquet   the tidy table: one row per run and robot
     summary.csv              per variant, robot and metric: n, mean, median, std, 95 % CI
-    comparisons.csv          each variant against the baseline over the same seeds
+    comparisons.csv          each variant against the baseline (or the batch's ``comparisons``
+                             pairs) over the same seeds
     plots/<metric>.png       box plots of the report's metrics per variant (one panel per robot)
     plots/sweep_<metric>.png with one numeric sweep key: each metric against it, one line per
                              variant label (mean and 95 % CI over seeds, seeds as dots)
@@ -138,16 +139,18 @@ def summarize(table: pd.DataFrame, metrics: list[str] | None = None) -> pd.DataF
     return pd.DataFrame(out, columns=SUMMARY_COLUMNS)
 
 
-def compare(table: pd.DataFrame, baseline: str, metrics: list[str]) -> pd.DataFrame:
-    """Every other variant against ``baseline``, per robot and metric, paired by seed."""
+def compare(table: pd.DataFrame, pairs: list[tuple[str, str]], metrics: list[str]) -> pd.DataFrame:
+    """Each ``(variant, baseline)`` pair, per robot the two share and metric, paired by seed."""
     out = []
     for metric in metrics:
         rows = metric_rows(table, metric)
-        base = rows[rows["variant"] == baseline]
-        for (variant, robot), group in rows[rows["variant"] != baseline].groupby(["variant", "robot"], sort=False):
-            pairs = group.merge(base[base["robot"] == robot], on="seed", suffixes=("", "_base"))
-            if not pairs.empty:
-                out.append([variant, baseline, robot, metric, *paired_change(pairs["value_base"].to_numpy(float), pairs["value"].to_numpy(float))])
+        for variant, baseline in pairs:
+            base = rows[rows["variant"] == baseline]
+            for robot, group in rows[rows["variant"] == variant].groupby("robot", sort=False):
+                paired = group.merge(base[base["robot"] == robot], on="seed", suffixes=("", "_base"))
+                if not paired.empty:
+                    values = paired["value_base"].to_numpy(float), paired["value"].to_numpy(float)
+                    out.append([variant, baseline, robot, metric, *paired_change(*values)])
     return pd.DataFrame(out, columns=COMPARISON_COLUMNS)
 
 
@@ -263,7 +266,8 @@ def write_report(batch_dir: Path, metrics: list[str] | None = None) -> Path:
     _parquet_safe(table).to_parquet(batch_dir / "runs.parquet", index=False)
     summary = summarize(table)
     summary.to_csv(batch_dir / "summary.csv", index=False)
-    comparisons = compare(table, baseline, metrics)
+    pairs = [tuple(p) for p in index.get("comparisons") or [[v, baseline] for v in variants if v != baseline]]
+    comparisons = compare(table, pairs, metrics)
     comparisons.to_csv(batch_dir / "comparisons.csv", index=False)
 
     runs = index["runs"]
@@ -316,7 +320,7 @@ def write_report(batch_dir: Path, metrics: list[str] | None = None) -> Path:
             lines.append(f"| {r.variant} | {_fmt(r.robot)} | {r.n} | {_fmt(r.mean)} | {_fmt(r.median)} | {_fmt(r.std)} | {ci} |")
     lines += [
         "",
-        f"## Paired comparisons against `{baseline}`",
+        "## Paired comparisons",
         "",
         "Runs paired by seed. Relative change = mean(variant - baseline) / mean(baseline); its CI: Student's t 95 % interval",
         "of the mean paired difference over the baseline's mean. p: two-sided Wilcoxon signed-rank test (scipy.stats.wilcoxon;",
@@ -324,15 +328,15 @@ def write_report(batch_dir: Path, metrics: list[str] | None = None) -> Path:
         "",
     ]
     if comparisons.empty:
-        lines.append("No variant has completed runs paired with the baseline's.")
+        lines.append("No variant has completed runs paired with its baseline's.")
     else:
         lines += [
-            "| variant | robot | metric | pairs | baseline mean | variant mean | relative change | 95 % CI | Wilcoxon p |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "| variant | baseline | robot | metric | pairs | baseline mean | variant mean | relative change | 95 % CI | Wilcoxon p |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in comparisons.itertuples():
             lines.append(
-                f"| {r.variant} | {_fmt(r.robot)} | `{r.metric}` | {r.n_pairs} | {_fmt(r.baseline_mean)} | {_fmt(r.variant_mean)} "
+                f"| {r.variant} | {r.baseline} | {_fmt(r.robot)} | `{r.metric}` | {r.n_pairs} | {_fmt(r.baseline_mean)} | {_fmt(r.variant_mean)} "
                 f"| {_pct(r.relative_change)} | [{_pct(r.relative_ci95_low)}, {_pct(r.relative_ci95_high)}] | {_fmt(r.wilcoxon_p, 3)} |"
             )
     path = batch_dir / "report.md"

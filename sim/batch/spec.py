@@ -14,6 +14,8 @@ what varies::
     sweep:                          # a grid over dotted keys (cartesian product)
       terrain.rocks.count: [10, 40]
     baseline: local_reference       # the variant the others are compared with (default: the first)
+    comparisons:                    # instead: these [variant, baseline] pairs (both variant names)
+      - [local_reference, single]
     metrics: [filter.ate_m.rmse]    # what the report summarises and plots
 
 Every variant is the product of a labelled variant (or the base scenario alone) and a
@@ -92,6 +94,9 @@ class BatchConfig(StrictModel):
     variants: list[VariantConfig] = Field(default_factory=list)
     sweep: dict[str, list[Any]] = Field(default_factory=dict)
     baseline: str | None = Field(None, description="variant the others are compared with (default: the first)")
+    comparisons: list[tuple[str, str]] | None = Field(
+        None, min_length=1, description="[variant, baseline] pairs the report compares (default: every variant against baseline)"
+    )
     metrics: list[str] = Field(default_factory=lambda: list(DEFAULT_METRICS), min_length=1)
 
     _set_keys = field_validator("set", "sweep")(_check_keys)
@@ -174,6 +179,13 @@ class Batch:
         if self.config.baseline is not None:
             return self.config.baseline
         return self.variants[0].name
+
+    @property
+    def comparisons(self) -> list[tuple[str, str]]:
+        """The (variant, baseline) pairs the report compares."""
+        if self.config.comparisons is not None:
+            return [tuple(pair) for pair in self.config.comparisons]
+        return [(v.name, self.baseline) for v in self.variants if v.name != self.baseline]
 
     def specs(self) -> list[RunSpec]:
         """All runs, seed-major: an interrupted batch still has whole pairs of variants."""
@@ -260,6 +272,12 @@ def load_batch(path: str | Path, extra: list[str] | None = None, max_seeds: int 
     names = [v.name for v in variants]
     if config.baseline is not None and config.baseline not in names:
         raise BatchError(label, [f"baseline: got {config.baseline!r}: not a variant; variants: {names}"])
+    unknown = sorted({name for pair in config.comparisons or [] for name in pair} - set(names))
+    if unknown:
+        raise BatchError(label, [f"comparisons: {unknown} not variants; variants: {names}"])
+    same = [list(pair) for pair in config.comparisons or [] if pair[0] == pair[1]]
+    if same:
+        raise BatchError(label, [f"comparisons: {same} compare a variant with itself"])
     return Batch(config=config, source=path, scenario_path=scenario_path, raw=raw, variants=variants, extra=list(extra or []))
 
 
