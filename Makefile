@@ -8,7 +8,7 @@ export MUJOCO_GL ?= egl
 # pytest workers: 2 cores on our machines
 WORKERS ?= 2
 
-.PHONY: setup demo test test-slow regress bench lint clean
+.PHONY: setup demo test test-slow regress bench experiments lint clean
 
 setup: $(STAMP)
 
@@ -41,6 +41,17 @@ bench: setup
 	$(BIN)/python -m sim.tools.batch_bench --out results/bench/batch.json
 	# one simulated hour of three robots (about 90 min of wall time): metrics.json runtime.memory
 	$(BIN)/marsyard run scenarios/soak.yaml --out results/bench/soak --no-progress
+
+# the thesis's claims as batches (docs/fidelity.md), into results/experiments/<name>/; each resumes where it
+# stopped (about 9-10 h on 2 cores in all: multi_vs_single about 2 h, graph_topology 2.2 h, matching_4d_6d and
+# marker_uncertainty about 2.5 h each); a batch with runs that did not complete makes the target fail at the end
+EXPERIMENTS ?= multi_vs_single graph_topology matching_4d_6d marker_uncertainty
+experiments: setup
+	@echo "make experiments: $(EXPERIMENTS) (about 9-10 h on 2 cores; interrupt and rerun to continue)"
+	@status=0; for name in $(EXPERIMENTS); do \
+		$(BIN)/marsyard batch scenarios/experiments/$$name.yaml --out results/experiments/$$name --resume --workers $(WORKERS); \
+		code=$$?; [ $$code -eq 130 ] && exit 130; [ $$code -ne 0 ] && status=1; \
+	done; exit $$status
 
 lint: setup
 	$(BIN)/ruff check sim slam comms tests

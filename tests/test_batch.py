@@ -345,3 +345,9 @@ def test_sigterm_ends_the_workers_and_puts_running_runs_back_to_pending(tmp_path
     for pid in alive:
         os.kill(pid, signal.SIGKILL)
     assert not alive
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).parents[1] / "scenarios" / "experiments").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_experiment_file_is_a_valid_batch(path):
+    batch = load_batch(path)
+    assert not check(batch), check(batch)
