@@ -42,7 +42,8 @@ bench: setup
 	# one simulated hour of three robots (about 90 min of wall time): metrics.json runtime.memory
 	$(BIN)/marsyard run scenarios/soak.yaml --out results/bench/soak --no-progress
 
-# the thesis's claims as batches (docs/fidelity.md), into results/experiments/<name>/; each resumes where it
+# the thesis's claims as batches (docs/fidelity.md), into results/experiments/<name>/, then the claims table
+# (sim/tools/fidelity.py); each batch resumes where it
 # stopped (about 9-10 h on 2 cores in all: multi_vs_single about 2 h, graph_topology 2.2 h, matching_4d_6d and
 # marker_uncertainty about 2.5 h each); a batch with runs that did not complete makes the target fail at the end
 EXPERIMENTS ?= multi_vs_single graph_topology matching_4d_6d marker_uncertainty
@@ -51,7 +52,7 @@ experiments: setup
 	@status=0; for name in $(EXPERIMENTS); do \
 		$(BIN)/marsyard batch scenarios/experiments/$$name.yaml --out results/experiments/$$name --resume --workers $(WORKERS); \
 		code=$$?; [ $$code -eq 130 ] && exit 130; [ $$code -ne 0 ] && status=1; \
-	done; exit $$status
+	done; $(BIN)/python -m sim.tools.fidelity; exit $$status
 
 lint: setup
 	$(BIN)/ruff check sim slam comms tests
