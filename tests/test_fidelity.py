@@ -22,11 +22,12 @@ def test_team_against_alone_pairs_each_rover_with_its_own_single_run_per_seed():
         data += rows("a_alone", seed, {"a": {"slam.ate_m.mean": alone["a"]}})
         data += rows("b_alone", seed, {"b": {"slam.ate_m.mean": alone["b"]}})
     data += rows("team", 6, {"a": {"slam.ate_m.mean": 9.0}, "b": {"slam.ate_m.mean": 9.0}})  # no single runs: left out
-    figure = fidelity._team_against_alone(pd.DataFrame(data))
+    figure = fidelity._team_against_alone(pd.DataFrame(data), "slam.ate_m.mean")
     team_mean = sum((1.0 + 0.1 * s + 2.0) / 2 for s in range(6)) / 6
     alone_mean = sum((2.0 + 0.1 * s + 2.0 + 0.01 * (s + 1)) / 2 for s in range(6)) / 6
     assert figure.n == 6 and figure.verdict == "reproduced"  # every seed lower in the team
     assert f"{100 * (team_mean - alone_mean) / alone_mean:+.1f} %" in figure.text
+    assert fidelity._team_against_alone(pd.DataFrame(data), "slam.ate_m.mean", sign=0).verdict == "control"
 
 
 @pytest.mark.parametrize(
