@@ -4,8 +4,8 @@ Pure module: numpy, on top of ``slam.submap`` and ``slam.voxels``. Finished subm
 the latest estimates of their origins in the global frame in; one point cloud and one voxel grid out.
 
 - Point cloud: every submap's points moved by its origin's pose, concatenated and voxel-filtered at
-  ``point_resolution_m`` (PCL semantics as in ``slam.submap.voxel_filter``: centroid, obstacle if any
-  point is, mean intensity; each submap point counts once), so overlaps are thinned back to the
+  ``point_resolution_m`` (PCL semantics as in ``slam.submap.voxel_filter``: centroid, obstacle (and
+  classified) if any point is, mean intensity; each submap point counts once), so overlaps are thinned back to the
   original density. ``labels`` give, per output point, the submap of the voxel's first contributor in
   the order the submaps are composed: finished submaps sorted by (robot, index), the current submap last.
 - Voxel grid: each submap's grid resampled into the global frame and added with clamping
@@ -51,6 +51,7 @@ class Composition(NamedTuple):
     obstacle: np.ndarray  # (n,) bool
     intensity: np.ndarray  # (n,) uint8, mean
     labels: np.ndarray  # (n, 2) int64: robot number (in GlobalMap.robots order), submap index
+    classified: np.ndarray  # (n,) bool: within the obstacle classification's range (``Submap.classified``)
 
 
 @dataclass
@@ -153,7 +154,7 @@ class GlobalMap:
 
     def _sums(self, submap: Submap, T: np.ndarray, tag: int) -> VoxelSums:
         points = submap.points.astype(float) @ T[:3, :3].T + T[:3, 3]
-        return VoxelSums.of_points(points, submap.obstacle, submap.intensity, self.point_resolution_m, tag)
+        return VoxelSums.of_points(points, submap.obstacle, submap.intensity, self.point_resolution_m, tag, submap.classified)
 
     def compose(self, poses: dict[Key, np.ndarray], current: tuple[Submap, np.ndarray] | None = None) -> Composition:
         """The global point cloud (thesis 5.2.2) from the stored submaps at ``poses`` (T_global_submap, 4x4) and the
@@ -175,7 +176,8 @@ class GlobalMap:
         number = {r: i for i, r in enumerate(robots)}
         lut = np.array([(number[r], i) for r, i in table], dtype=np.int64).reshape(-1, 2)
         points, obstacle, intensity = sums.centroids()
-        return Composition(points.astype(np.float32), obstacle, np.clip(np.rint(intensity), 0, 255).astype(np.uint8), lut[sums.tag])
+        intensity = np.clip(np.rint(intensity), 0, 255).astype(np.uint8)
+        return Composition(points.astype(np.float32), obstacle, intensity, lut[sums.tag], sums.classified.copy())
 
     # ----------------------------------------------------------------------- voxel grid
 

@@ -47,7 +47,7 @@ class LocalMapper:
         T_odom_cam = T_odom_local @ T_local_cam
         classification = classify_depth(depth, self.calibration, T_odom_cam, self.obstacle_params)
         intensity = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        self.builder.integrate(depth, T_local_cam, classification.pixel_obstacles, intensity, t)
+        self.builder.integrate(depth, T_local_cam, classification.pixel_obstacles, intensity, t, classified=classification.pixel_classified)
         self.rolling.update(classification.height_map, (T_odom_local @ T_local_body)[:2, 3])
         return classification
 

@@ -139,6 +139,7 @@ class Classification:
     edge_min_slope: np.ndarray  # (H, W) s_min (eq. 5.1) at near-side pixels of depth jumps, NaN elsewhere
     height_map: HeightMap
     pixel_obstacles: np.ndarray  # (H, W) bool: negative edge, or the pixel's point lies in an obstacle cell
+    pixel_classified: np.ndarray  # (H, W) bool: the pixels the classification read (classified_pixels); flags hold there only
 
 
 # --------------------------------------------------------------------------- inputs
@@ -390,7 +391,8 @@ def classify_depth(
     (its baseline sets the stereo error); ``T_gravity_cam`` the camera's pose in a
     gravity-aligned frame (z up). A pixel is an obstacle if it is a negative edge or its point
     falls into a cell with traversability above 1; pixels without a point (no data, beyond the
-    far cut) are not, unless they are an edge.
+    far cut) are not, unless they are an edge. ``pixel_classified`` marks the pixels read
+    (edges lie among them): beyond them a pixel's flag says nothing.
     """
     params = params or ObstacleParams()
     depth_e, pts, in_range, R, t = _prepare(depth, calibration, T_gravity_cam, params)
@@ -405,7 +407,7 @@ def classify_depth(
     with np.errstate(invalid="ignore"):
         pixel_obstacles[in_range] |= traversability[flat] > 1
     height_map = HeightMap(params.resolution_m, origin, height, h_diff, threshold, traversability.reshape(height.shape))
-    return Classification(edges, min_slope, height_map, pixel_obstacles)
+    return Classification(edges, min_slope, height_map, pixel_obstacles, in_range)
 
 
 # --------------------------------------------------------------------------- rolling map

@@ -14,7 +14,11 @@ A submap (5.1.2) is a gravity-aligned origin that coincides with one local frame
   and the count of every raw point that fell into it (``VoxelSums``), so a cloud point is the centroid of
   all raw points of its voxel, identical to one filter over all images at once. PCL filtering the cloud
   itself would count an old centroid as one point (a running average favouring recent images); the
-  voxels and the flags are the same either way.
+  voxels and the flags are the same either way. Each point also carries a ``classified`` flag (ours, not
+  the thesis's): whether any of its raw points lay within the obstacle classification's range
+  (``slam.obstacles.classified_pixels``, 2.4 m for the 320x240 LRU), which is shorter than the cloud's far
+  cut (4.0 m); beyond it a point's obstacle flag is unknown rather than "traversable", which a map user
+  (navigation, the map scores of ``sim/evaluation/map_quality.py``) must tell apart.
 - a log-odds voxel grid at ``voxel_resolution_m`` (10 cm, ``slam.voxels.VoxelGrid``), one beam-model
   update per image with rays from the camera origin.
 
@@ -34,10 +38,12 @@ down, far cut at 2.54 m (f b = 30.5 px m): 27,840 valid pixels, 1,326 centroids;
 ``SubmapBuilder.integrate`` takes 8-12 ms per image over a 50-image, 5 m drive (``drive_submap`` in
 ``tests/test_submap.py``, command there); the thesis measured 10 ms on average (8.4).
 
-Size (thesis 8.4: 700 KB on average in LRU Experiment #2): that drive's submap has 10,852 points and
-11,546 voxels and encodes to 18.5 KB (81 KB without zlib, of which the voxel grid is 4 KB). The thesis's
-cameras saw farther (higher resolution, so a farther far cut) and its points carry RGB; here the far cut
-of a 320x240 camera keeps only the ground 1.3-2.5 m ahead, and points carry one intensity byte.
+Size (thesis 8.4: 700 KB on average in LRU Experiment #2): that drive's submap has 19,692 points and
+20,020 voxels and encodes to 31.5 KB (149 KB without zlib, of which the voxel grid is 5.8 KB; measured
+2026-12-03 with the 4.0 m far cut; the classified flags cost 20 bytes of it, every point being classified
+there). The thesis's cameras saw farther (higher resolution, so a farther far cut) and its points carry
+RGB; here the far cut of a 320x240 camera keeps the ground up to about 4 m ahead, and points carry one
+intensity byte.
 """
 
 from __future__ import annotations
@@ -86,14 +92,25 @@ class VoxelSums:
     obstacle: np.ndarray  # (n,) bool, any point an obstacle
     intensity: np.ndarray  # (n,) float64 sums of intensities
     tag: np.ndarray  # (n,) int64
+    classified: np.ndarray  # (n,) bool, any point within the obstacle classification's range
 
     @classmethod
     def empty(cls, resolution: float) -> VoxelSums:
-        return cls(resolution, np.empty(0, np.int64), np.empty((0, 3)), np.empty(0, np.int64), np.empty(0, bool), np.empty(0), np.empty(0, np.int64))
+        e = np.empty
+        return cls(resolution, e(0, np.int64), e((0, 3)), e(0, np.int64), e(0, bool), e(0), e(0, np.int64), e(0, bool))
 
     @classmethod
-    def of_points(cls, points: np.ndarray, obstacle: np.ndarray, intensity: np.ndarray, resolution: float, tag: np.ndarray | int = 0) -> VoxelSums:
-        """Sums of finite ``points`` (n, 3) with their flags and intensities; ``tag`` per point or one for all."""
+    def of_points(
+        cls,
+        points: np.ndarray,
+        obstacle: np.ndarray,
+        intensity: np.ndarray,
+        resolution: float,
+        tag: np.ndarray | int = 0,
+        classified: np.ndarray | bool = False,
+    ) -> VoxelSums:
+        """Sums of finite ``points`` (n, 3) with their flags and intensities; ``tag`` and
+        ``classified`` per point or one for all."""
         p = np.asarray(points, dtype=float)
         if p.ndim != 2 or p.shape[1] != 3:
             raise SubmapException(f"points must have shape (n, 3), got {p.shape}")
@@ -112,10 +129,14 @@ class VoxelSums:
         u = idx + _OFFSET
         keys = (u[:, 0] << (2 * _BITS)) | (u[:, 1] << _BITS) | u[:, 2]
         tags = np.broadcast_to(np.asarray(tag, dtype=np.int64), (n,))
-        return cls._reduce(resolution, keys, p, np.ones(n, np.int64), obs.astype(bool), inten.astype(float), tags)
+        known = np.asarray(classified, dtype=bool)
+        if known.ndim and known.shape != (n,):
+            raise SubmapException(f"classified must be one flag or have shape ({n},), got {known.shape}")
+        known = np.broadcast_to(known, (n,))
+        return cls._reduce(resolution, keys, p, np.ones(n, np.int64), obs.astype(bool), inten.astype(float), tags, known)
 
     @classmethod
-    def _reduce(cls, resolution, keys, xyz, count, obstacle, intensity, tag) -> VoxelSums:
+    def _reduce(cls, resolution, keys, xyz, count, obstacle, intensity, tag, classified) -> VoxelSums:
         """Sum rows with equal keys; the first row of each key gives its tag."""
         unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
         m = len(unique)
@@ -124,7 +145,9 @@ class VoxelSums:
             return np.bincount(inverse, weights=w, minlength=m)
 
         sums = np.stack([add(xyz[:, 0]), add(xyz[:, 1]), add(xyz[:, 2])], axis=1) if m else np.empty((0, 3))
-        return cls(resolution, unique, sums, add(count).astype(np.int64), add(obstacle) > 0, add(intensity), tag[first].astype(np.int64))
+        return cls(
+            resolution, unique, sums, add(count).astype(np.int64), add(obstacle) > 0, add(intensity), tag[first].astype(np.int64), add(classified) > 0
+        )
 
     def merged(self, other: VoxelSums) -> VoxelSums:
         """The sums of both point sets: exactly ``of_points`` of their union (up to float rounding)."""
@@ -141,7 +164,7 @@ class VoxelSums:
         def cat(name):
             return np.concatenate([getattr(p, name) for p in parts])
 
-        fields = ("keys", "xyz", "count", "obstacle", "intensity", "tag")
+        fields = ("keys", "xyz", "count", "obstacle", "intensity", "tag", "classified")
         return VoxelSums._reduce(parts[0].resolution, *(cat(f) for f in fields))
 
     def __len__(self) -> int:
@@ -192,7 +215,7 @@ class SubmapParams:
 # --------------------------------------------------------------------------- finished submaps
 
 _MAGIC = b"MSMP"
-_VERSION = 1
+_VERSION = 2
 _FLAG_ZLIB = 1
 # magic, version, flags, coordinate bytes, robot name length, index, frame index, t_start, t_end, distance, images, points, anchor
 _HEADER = struct.Struct("<4sHBBHiidddII3d")
@@ -222,6 +245,7 @@ class Submap:
     t_end: float
     points: np.ndarray  # (n, 3) float32
     obstacle: np.ndarray  # (n,) bool
+    classified: np.ndarray  # (n,) bool: within the obstacle classification's range (every obstacle point is)
     intensity: np.ndarray  # (n,) uint8
     voxels: VoxelGrid
     images: int  # depth images integrated
@@ -232,8 +256,12 @@ class Submap:
         n = len(points)
         if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
             raise SubmapException(f"points must be finite with shape (n, 3), got {points.shape}")
-        if np.shape(self.obstacle) != (n,) or np.shape(self.intensity) != (n,):
-            raise SubmapException(f"obstacle and intensity must have shape ({n},), got {np.shape(self.obstacle)} and {np.shape(self.intensity)}")
+        shapes = [np.shape(a) for a in (self.obstacle, self.classified, self.intensity)]
+        if any(shape != (n,) for shape in shapes):
+            raise SubmapException(f"obstacle, classified and intensity must have shape ({n},), got {', '.join(map(str, shapes))}")
+        obstacle, classified = np.asarray(self.obstacle, dtype=bool), np.asarray(self.classified, dtype=bool)
+        if np.any(obstacle & ~classified):
+            raise SubmapException(f"{int(np.sum(obstacle & ~classified))} obstacle points are not classified")
         intensity = np.asarray(self.intensity)
         if intensity.dtype != np.uint8:
             intensity = np.clip(np.rint(intensity), 0, 255).astype(np.uint8)
@@ -244,7 +272,8 @@ class Submap:
                 f"need t_end >= t_start, images >= 0, distance_m >= 0; got {self.t_start}, {self.t_end}, {self.images}, {self.distance_m}"
             )
         object.__setattr__(self, "points", _read_only(points))
-        object.__setattr__(self, "obstacle", _read_only(np.asarray(self.obstacle, dtype=bool)))
+        object.__setattr__(self, "obstacle", _read_only(obstacle))
+        object.__setattr__(self, "classified", _read_only(classified))
         object.__setattr__(self, "intensity", _read_only(intensity))
 
     @property
@@ -264,10 +293,11 @@ class Submap:
         length, index, frame index, t_start, t_end, distance, images, point count n, float64 anchor), the
         robot name (UTF-8), then ``u32 length + body``: the coordinates as mm offsets from the anchor, int16
         (int32 when an axis spans more than +-32.767 m), column by column, each column delta-coded along the
-        point order (modulo 2^16 or 2^32; -30 % after zlib on the synthetic drive), the obstacle flags
-        bit-packed (``np.packbits``), the intensities (uint8); the body is a zlib stream when ``compress``
-        (flag bit 0). Last ``u32 length + VoxelGrid.to_bytes()`` (already compressed). Points come back
-        within 0.5 mm per axis (plus float32 rounding), flags and intensities exactly, voxel states exactly.
+        point order (modulo 2^16 or 2^32; -30 % after zlib on the synthetic drive), the obstacle flags and
+        then the classified flags bit-packed (``np.packbits``), the intensities (uint8); the body is a zlib
+        stream when ``compress`` (flag bit 0). Last ``u32 length + VoxelGrid.to_bytes()`` (already
+        compressed). Points come back within 0.5 mm per axis (plus float32 rounding), flags and intensities
+        exactly, voxel states exactly. Version 2 added the classified flags.
         """
         p = self.points.astype(np.float64)
         anchor = (p.min(axis=0) + p.max(axis=0)) / 2 if len(p) else np.zeros(3)
@@ -277,7 +307,7 @@ class Submap:
             raise SubmapException("submap points span more than +-2147 km around their centre")
         deltas = np.diff(q.T.astype(np.int64), axis=1, prepend=0)  # along the key order: small, compresses well
         coords = np.ascontiguousarray(deltas.astype(np.dtype(f"<i{width}")))  # wraps modulo 2^16 (2^32); decoding wraps back
-        body = coords.tobytes() + np.packbits(self.obstacle).tobytes() + self.intensity.tobytes()
+        body = coords.tobytes() + np.packbits(self.obstacle).tobytes() + np.packbits(self.classified).tobytes() + self.intensity.tobytes()
         if compress:
             body = zlib.compress(body, 6)
         name = self.robot.encode("utf-8")
@@ -318,18 +348,20 @@ class Submap:
             except zlib.error as exc:
                 raise SubmapException(f"submap point data is corrupt: {exc}") from exc
         n_flags = (n + 7) // 8
-        if len(body) != 3 * n * width + n_flags + n:
-            raise SubmapException(f"submap point data has {len(body)} bytes, {n} points need {3 * n * width + n_flags + n}")
+        if len(body) != 3 * n * width + 2 * n_flags + n:
+            raise SubmapException(f"submap point data has {len(body)} bytes, {n} points need {3 * n * width + 2 * n_flags + n}")
         deltas = np.frombuffer(body, dtype=np.dtype(f"<i{width}"), count=3 * n).reshape(3, n)
         q = np.cumsum(deltas, axis=1, dtype=np.int64).astype(np.dtype(f"<i{width}")).T
-        obstacle = np.unpackbits(np.frombuffer(body, np.uint8, n_flags, 3 * n * width), count=n).astype(bool)
-        intensity = np.frombuffer(body, np.uint8, n, 3 * n * width + n_flags)
+        obstacle, classified = (
+            np.unpackbits(np.frombuffer(body, np.uint8, n_flags, 3 * n * width + k * n_flags), count=n).astype(bool) for k in (0, 1)
+        )
+        intensity = np.frombuffer(body, np.uint8, n, 3 * n * width + 2 * n_flags)
         try:
             voxels = VoxelGrid.from_bytes(voxel_bytes)
         except VoxelException as exc:
             raise SubmapException(f"submap voxel grid: {exc}") from exc
         points = q * QUANTUM_M + np.asarray(anchor)
-        return cls(robot, index, frame_index, t_start, t_end, points, obstacle, intensity, voxels, images, distance)
+        return cls(robot, index, frame_index, t_start, t_end, points, obstacle, classified, intensity, voxels, images, distance)
 
     @cached_property
     def size_bytes(self) -> int:
@@ -393,9 +425,12 @@ class SubmapBuilder:
     def images(self) -> int:
         return self._active.images
 
-    def integrate(self, depth: np.ndarray, T_submap_cam: np.ndarray, obstacle: np.ndarray, intensity: np.ndarray, t: float) -> None:
+    def integrate(
+        self, depth: np.ndarray, T_submap_cam: np.ndarray, obstacle: np.ndarray, intensity: np.ndarray, t: float, *, classified: np.ndarray
+    ) -> None:
         """Add one z-depth image (H, W) of the left camera, seen from ``T_submap_cam`` (4x4, the camera in the
-        active submap's frame), with its per-pixel obstacle flags and intensities (thesis 5.1.2).
+        active submap's frame), with its per-pixel obstacle flags and intensities (thesis 5.1.2), and the
+        pixels the obstacle classification read (``slam.obstacles.Classification.pixel_classified``).
 
         Invalid (NaN, inf, <= 0) and far pixels (eq. 5.2c above ``max_depth_error_m``) are dropped; the rest
         are voxel-filtered at ``point_resolution_m`` and merged into the cloud, and the voxel grid gets one
@@ -405,9 +440,14 @@ class SubmapBuilder:
         c = self.calibration
         if depth.shape != (c.height, c.width):
             raise SubmapException(f"depth must be a ({c.height}, {c.width}) image as the calibration says, got shape {depth.shape}")
-        obstacle, intensity = np.asarray(obstacle), np.asarray(intensity)
-        if obstacle.shape != depth.shape or intensity.shape != depth.shape:
-            raise SubmapException(f"obstacle and intensity must have the depth's shape {depth.shape}, got {obstacle.shape} and {intensity.shape}")
+        obstacle, intensity, classified = np.asarray(obstacle), np.asarray(intensity), np.asarray(classified)
+        if obstacle.shape != depth.shape or intensity.shape != depth.shape or classified.shape != depth.shape:
+            raise SubmapException(
+                f"obstacle, intensity and classified must have the depth's shape {depth.shape}, "
+                f"got {obstacle.shape}, {intensity.shape} and {classified.shape}"
+            )
+        if np.any(obstacle.astype(bool) & ~classified.astype(bool)):
+            raise SubmapException("obstacle pixels must be classified pixels")
         T = np.asarray(T_submap_cam, dtype=float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise SubmapException(f"T_submap_cam must be a finite 4x4 matrix, got shape {T.shape}")
@@ -418,7 +458,7 @@ class SubmapBuilder:
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(cut) & (cut > 0)
         points = depth_to_points(cut, self.calibration)[valid].astype(float) @ T[:3, :3].T + T[:3, 3]
-        image = VoxelSums.of_points(points, obstacle[valid], intensity[valid], p.point_resolution_m)
+        image = VoxelSums.of_points(points, obstacle[valid], intensity[valid], p.point_resolution_m, classified=classified[valid])
         a = self._active
         a.cloud = a.cloud.merged(image)
         a.voxels.integrate(image.centroids()[0], T[:3, 3], max_range=p.voxel_max_range_m)
@@ -446,7 +486,8 @@ class SubmapBuilder:
         a = self._active
         points, obstacle, intensity = a.cloud.centroids()
         t_start = t_end if a.t_start is None else a.t_start
-        return Submap(self.robot, a.index, a.frame_index, t_start, max(t_end, t_start), points, obstacle, intensity, voxels, a.images, a.distance_m)
+        flags = (obstacle, a.cloud.classified, intensity)
+        return Submap(self.robot, a.index, a.frame_index, t_start, max(t_end, t_start), points, *flags, voxels, a.images, a.distance_m)
 
     def current(self) -> Submap:
         """A snapshot of the active submap (copies), e.g. for the robot's own global map (thesis 5.2.2); its

@@ -36,7 +36,7 @@ def build(robot: str, T_global_submap: np.ndarray, cameras, index: int = 0) -> S
     for k, (x, y, yaw) in enumerate(cameras):
         T_submap_cam = camera_pose(x, y, yaw)
         depth, obstacle, intensity = render(T_global_submap @ T_submap_cam, (BOX,), ground_z=GROUND_Z)
-        builder.integrate(depth, T_submap_cam, obstacle, intensity, float(k))
+        builder.integrate(depth, T_submap_cam, obstacle, intensity, float(k), classified=np.isfinite(depth))
     return builder
 
 

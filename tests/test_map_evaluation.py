@@ -84,6 +84,26 @@ def test_points_on_robots_are_neither_scored_nor_cover_cells(terrain):
     assert len(masked.tp_xy) + len(masked.fp_xy) == masked.mapped_cells
 
 
+def test_only_classified_points_count_as_seeing_a_cell(rocky):
+    """A map around a rock whose points are classified only on one side of x (as points beyond
+    the classification's range are not): the rock's unflagged cells on the other side are
+    not misses, and flags there could not come from the classification."""
+    terrain = rocky
+    rock = max(terrain.rocks, key=lambda r: r.radii[2])
+    x0, y0 = rock.center[:2] - 1.5
+    pts = true_surface_map(terrain, x0, y0, 3.0)
+    tall = pts[:, 2] > terrain.height_at(pts[:, 0], pts[:, 1]) + 0.05
+    near = pts[:, 0] < rock.center[0]  # the half nearer a robot coming from -x
+    everything = map_quality(pts, tall, terrain).obstacles
+    half = map_quality(pts, tall & near, terrain, classified=near).obstacles
+    blind = map_quality(pts, tall & near, terrain).obstacles  # the same flags, every point taken as classified
+    assert 0 < half.true_cells_seen < everything.true_cells_seen
+    assert half.recall > 0.5 and blind.recall < half.recall  # the far half's rock cells count as missed only when unclassified points count
+    assert half.mapped_cells == blind.mapped_cells
+    with pytest.raises(MapEvaluationError, match="classified must have shape"):
+        map_quality(pts, tall, terrain, classified=near[:-1])
+
+
 def test_bad_maps_are_refused(terrain):
     with pytest.raises(MapEvaluationError, match="points"):
         map_quality(np.zeros((0, 3)), np.zeros(0, bool), terrain)

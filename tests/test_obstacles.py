@@ -17,6 +17,7 @@ from slam.obstacles import (
     ObstacleException,
     ObstacleParams,
     RollingObstacleMap,
+    classified_pixels,
     classify_depth,
     negative_edges,
     steep_drops,
@@ -228,6 +229,9 @@ def test_far_points_are_dropped():
     cam = (np.column_stack([centers, np.zeros(len(centers))]) - T0[:3, 3]) @ T0[:3, :3]
     assert cam[:, 2].max() <= max_depth + 0.05
     assert np.nanmax(depth) > max_depth + 1.0  # the image itself reaches much farther
+    # the pixels read are reported, and they stop short of the far cut
+    np.testing.assert_array_equal(c.pixel_classified, classified_pixels(depth, CAL, params))
+    assert c.pixel_classified.any() and np.nanmax(np.where(c.pixel_classified, depth, np.nan)) <= max_depth
 
 
 # --------------------------------------------------------------------------- negative edges
@@ -251,6 +255,7 @@ def test_cliff_rim_is_negative_edge():
     c = classify_depth(depth, CAL, T0, params)
     np.testing.assert_array_equal(c.edges, edges)
     assert np.all(c.pixel_obstacles[edges])
+    assert not np.any(c.pixel_obstacles & ~c.pixel_classified)  # every flag is on a pixel that was read
     rim_cells = np.floor(pts[:, :2] / params.resolution_m).astype(int) - c.height_map.origin
     assert np.all(c.height_map.obstacles[rim_cells[:, 0], rim_cells[:, 1]])
     edge_ratio = min_slope[edges] / math.tan(params.max_slope_rad)

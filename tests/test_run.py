@@ -242,7 +242,8 @@ def test_submap_along_true_poses_matches_the_terrain(monkeypatch):
     builder = SubmapBuilder("lru1", SubmapParams(), calib)
     for frame_id, t, left, depth in frames:
         T_world_cam = truth[frame_id]
-        builder.integrate(depth, T_world_cam, classify_depth(depth, calib, T_world_cam).pixel_obstacles, left, t)
+        classification = classify_depth(depth, calib, T_world_cam)
+        builder.integrate(depth, T_world_cam, classification.pixel_obstacles, left, t, classified=classification.pixel_classified)
     submap = builder.current()
     assert submap.images > 20
     accuracy = map_quality(submap.points, submap.obstacle, simulation.terrain).accuracy

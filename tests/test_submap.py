@@ -5,13 +5,14 @@ Size and timing of a realistic submap (the 5 m drive of ``drive_submap``: ground
 320x240; the numbers are in ``slam/submap.py``), timing ``integrate`` alone, from the repository root::
 
     .venv/bin/python - <<'EOF'
-    import sys, time, math; sys.path.insert(0, "tests")
+    import sys, time, math; sys.path.insert(0, "tests"); import numpy as np
     from test_submap import BOXES, CALIB, camera_pose, render
     from slam.submap import SubmapBuilder, SubmapParams
     builder, spent = SubmapBuilder("lru1", SubmapParams(), CALIB), 0.0
     for i in range(50):
         x = 5.0 * i / 49; T = camera_pose(x, 0.1 * math.sin(x), 0.1 * math.cos(x)); depth, obstacle, intensity = render(T, BOXES)
-        t = time.perf_counter(); builder.integrate(depth, T, obstacle, intensity, 0.2 * i); spent += time.perf_counter() - t
+        t = time.perf_counter(); builder.integrate(depth, T, obstacle, intensity, 0.2 * i, classified=np.isfinite(depth))
+        spent += time.perf_counter() - t
     s = builder.finish(10.0, 1)
     print(s, f"{spent / 50 * 1e3:.1f} ms per image", s.size_bytes, len(s.to_bytes(compress=False)), len(s.voxels.to_bytes()))
     EOF
@@ -81,7 +82,7 @@ def render(T_frame_cam: np.ndarray, boxes=(), calib: StereoCalibration = CALIB, 
 
 def integrate(builder: SubmapBuilder, T: np.ndarray, t: float, boxes=()) -> None:
     depth, obstacle, intensity = render(T, boxes)
-    builder.integrate(depth, T, obstacle, intensity, t)
+    builder.integrate(depth, T, obstacle, intensity, t, classified=np.isfinite(depth))  # the render's flags are the truth
 
 
 def drive_submap(images: int = 50, length: float = 5.0, params: SubmapParams | None = None) -> Submap:
@@ -213,21 +214,28 @@ def test_images_without_valid_depth_add_nothing():
     builder = SubmapBuilder("lru1", SubmapParams(), CALIB)
     T = camera_pose(0, 0, 0)
     _, obstacle, intensity = render(T)
-    builder.integrate(np.full((HEIGHT, WIDTH), np.nan, np.float32), T, obstacle, intensity, 0.0)
-    builder.integrate(np.full((HEIGHT, WIDTH), 9.0, np.float32), T, obstacle, intensity, 0.5)  # all beyond the far cut
+    classified = np.ones((HEIGHT, WIDTH), bool)
+    builder.integrate(np.full((HEIGHT, WIDTH), np.nan, np.float32), T, obstacle, intensity, 0.0, classified=classified)
+    builder.integrate(np.full((HEIGHT, WIDTH), 9.0, np.float32), T, obstacle, intensity, 0.5, classified=classified)  # all beyond the far cut
     s = builder.current()
     assert (s.images, len(s.points), len(s.voxels), s.t_start, s.t_end) == (2, 0, 0, 0.0, 0.5)
 
 
 def test_integrate_rejects_mismatched_images():
     builder = SubmapBuilder("lru1", SubmapParams(), CALIB)
-    depth, obstacle, intensity = render(camera_pose(0, 0, 0))
+    depth, obstacle, intensity = render(camera_pose(0, 0, 0), BOXES)
+    known = np.isfinite(depth)
     with pytest.raises(SubmapException, match="shape"):
-        builder.integrate(depth, camera_pose(0, 0, 0), obstacle[:-1], intensity, 0.0)
+        builder.integrate(depth, camera_pose(0, 0, 0), obstacle[:-1], intensity, 0.0, classified=known)
+    with pytest.raises(SubmapException, match="shape"):
+        builder.integrate(depth, camera_pose(0, 0, 0), obstacle, intensity, 0.0, classified=known[:-1])
     with pytest.raises(SubmapException, match="4x4"):
-        builder.integrate(depth, np.eye(3), obstacle, intensity, 0.0)
+        builder.integrate(depth, np.eye(3), obstacle, intensity, 0.0, classified=known)
     with pytest.raises(SubmapException, match=r"\(240, 320\)"):
-        builder.integrate(depth[:, :-1], camera_pose(0, 0, 0), obstacle[:, :-1], intensity[:, :-1], 0.0)
+        builder.integrate(depth[:, :-1], camera_pose(0, 0, 0), obstacle[:, :-1], intensity[:, :-1], 0.0, classified=known[:, :-1])
+    assert obstacle.any()
+    with pytest.raises(SubmapException, match="obstacle pixels must be classified"):
+        builder.integrate(depth, camera_pose(0, 0, 0), obstacle, intensity, 0.0, classified=known & ~obstacle)
 
 
 # --------------------------------------------------------------------------- partitioning and freezing
@@ -305,6 +313,34 @@ def test_round_trip(submap: Submap, compress: bool):
     assert not back.points.flags.writeable
 
 
+def test_classified_flags_round_trip_and_bound_the_obstacles():
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-3, 3, (500, 3))
+    classified = np.arange(500) < 200  # the near points, as the classification's range leaves them
+    obstacle = classified & (rng.random(500) < 0.3)
+    s = Submap("a", 0, 0, 0.0, 1.0, points, obstacle, classified, np.zeros(500), VoxelGrid(0.1), 1, 0.0)
+    for compress in (True, False):
+        back = Submap.from_bytes(s.to_bytes(compress=compress))
+        np.testing.assert_array_equal(back.classified, classified)
+        np.testing.assert_array_equal(back.obstacle, obstacle)
+    with pytest.raises(SubmapException, match="1 obstacle points are not classified"):
+        Submap("a", 0, 0, 0.0, 1.0, points, obstacle | (np.arange(500) == 300), classified, np.zeros(500), VoxelGrid(0.1), 1, 0.0)
+
+
+def test_a_voxel_is_classified_if_any_of_its_points_is():
+    builder = SubmapBuilder("lru1", SubmapParams(), CALIB)
+    T = camera_pose(0, 0, 0)
+    depth, obstacle, intensity = render(T, BOXES)
+    near = np.isfinite(depth) & (depth < 2.0)
+    builder.integrate(depth, T, obstacle & near, intensity, 0.0, classified=near)
+    s = builder.current()
+    z = (s.points.astype(float) - T[:3, 3]) @ T[:3, 2]  # z-depth of each centroid
+    assert s.classified.any() and not s.classified.all()
+    assert np.all(s.classified[z < 1.95]) and not np.any(s.classified[z > 2.05])  # a 5 cm voxel may straddle 2 m
+    builder.integrate(depth, T, obstacle, intensity, 0.1, classified=np.isfinite(depth))  # the same view, all classified
+    assert builder.current().classified.all()
+
+
 def test_compression_and_size(submap: Submap):
     assert submap.size_bytes == len(submap.to_bytes()) < len(submap.to_bytes(compress=False))
     n = len(submap.points)
@@ -312,14 +348,14 @@ def test_compression_and_size(submap: Submap):
 
 
 def test_far_points_use_int32_and_empty_submaps_round_trip():
-    far = Submap("a", 0, 0, 0.0, 1.0, [[0, 0, 0], [80.0, 0.0, -0.0012]], [True, False], [5, 7], VoxelGrid(0.1), 1, 0.0)
+    far = Submap("a", 0, 0, 0.0, 1.0, [[0, 0, 0], [80.0, 0.0, -0.0012]], [True, False], [True, True], [5, 7], VoxelGrid(0.1), 1, 0.0)
     back = Submap.from_bytes(far.to_bytes())
     np.testing.assert_allclose(back.points, far.points, atol=QUANTUM_M / 2 + 1e-6)
     assert far.to_bytes(compress=False)[7] == 4  # coordinate width
-    wrap = Submap("a", 0, 0, 0.0, 1.0, [[-30, 0, 0], [30, 0, 0], [-30, 1, 0]], [True, False, True], [5, 7, 9], VoxelGrid(0.1), 1, 0.0)
+    wrap = Submap("a", 0, 0, 0.0, 1.0, [[-30, 0, 0], [30, 0, 0], [-30, 1, 0]], [True, False, True], [True] * 3, [5, 7, 9], VoxelGrid(0.1), 1, 0.0)
     assert wrap.to_bytes(compress=False)[7] == 2  # 60,000 mm steps wrap around in int16 and back
     np.testing.assert_allclose(Submap.from_bytes(wrap.to_bytes()).points, wrap.points, atol=QUANTUM_M / 2 + 1e-6)
-    empty = Submap("ü", 2, 3, 0.0, 0.0, np.empty((0, 3)), [], [], VoxelGrid(0.1), 0, 0.0)
+    empty = Submap("ü", 2, 3, 0.0, 0.0, np.empty((0, 3)), [], [], [], VoxelGrid(0.1), 0, 0.0)
     back = Submap.from_bytes(empty.to_bytes())
     assert (back.robot, back.index, back.frame_index, len(back.points)) == ("ü", 2, 3, 0)
 
@@ -330,8 +366,9 @@ def test_format_rejects_garbage_and_unknown_versions(submap: Submap):
         Submap.from_bytes(data[:10])
     with pytest.raises(SubmapException, match="magic"):
         Submap.from_bytes(b"XXXX" + data[4:])
-    with pytest.raises(SubmapException, match="version 2 is not supported"):
-        Submap.from_bytes(data[:4] + struct.pack("<H", 2) + data[6:])
+    for version in (1, 3):  # version 1 had no classified flags
+        with pytest.raises(SubmapException, match=f"version {version} is not supported"):
+            Submap.from_bytes(data[:4] + struct.pack("<H", version) + data[6:])
     with pytest.raises(SubmapException, match="truncated"):
         Submap.from_bytes(data[:-5])
     with pytest.raises(SubmapException, match="trailing"):

@@ -20,8 +20,9 @@ surface: map points on them count as errors, as they would for a map user.
   which the surface drops by more than ``h_max`` at more than the maximal slope (the
   negative-edge rule, eq. 5.1, with its drop condition, on every surface: cliff rims and
   slopes too steep to drive, as the classification tests its visible ground); precision
-  and recall of the map's obstacle points' cells against them within the explored area,
-  with one cell of tolerance.
+  of the map's obstacle points' cells against the true cells its points cover, recall
+  within the cells its classified points cover (``slam.submap.Submap.classified``: points
+  beyond the classification's range carry no verdict), with one cell of tolerance.
 """
 
 from __future__ import annotations
@@ -141,8 +142,8 @@ def true_obstacle_cells(terrain: Terrain, origin: np.ndarray, shape: tuple[int, 
 class ObstacleScore:
     """Obstacle cells of a map against the true ones (cells of the classification's
     ``resolution_m``; centres (k, 2) in the world for the plot): flagged and true (``tp``),
-    flagged only (``fp``), true only (``missed``, true cells seen by the map that no
-    flagged cell is next to)."""
+    flagged only (``fp``), true only (``missed``, true cells the map's classified points
+    cover that no flagged cell is next to)."""
 
     precision: float | None
     recall: float | None
@@ -170,27 +171,41 @@ class MapQuality:
 
 
 def score_obstacles(
-    pts: np.ndarray, obstacle: np.ndarray, terrain: Terrain, params: MapQualityParams, on_robots: np.ndarray | None = None
+    pts: np.ndarray,
+    obstacle: np.ndarray,
+    terrain: Terrain,
+    params: MapQualityParams,
+    on_robots: np.ndarray | None = None,
+    classified: np.ndarray | None = None,
 ) -> ObstacleScore:
-    """Precision and recall of the obstacle flags of world points (n, 3) within the cells
-    the points cover, with one cell of tolerance. Points ``on_robots`` (seen on a robot,
-    which the static truth does not hold) are neither scored nor count as covering a cell."""
+    """Precision and recall of the obstacle flags of world points (n, 3), with one cell of
+    tolerance. Recall counts the true cells that ``classified`` points cover (None: every
+    point was classified): beyond the classification's range a point carries no verdict, so
+    a true cell only such points saw is not a miss. Precision is judged against the true
+    cells any point covers (a flagged cell is classified; its true neighbour may have been
+    seen only from farther away). Points ``on_robots`` (seen on a robot, which the static
+    truth does not hold) are neither scored nor count as covering a cell."""
     on_robots = np.zeros(len(pts), bool) if on_robots is None else np.asarray(on_robots, bool)
+    known = np.ones(len(pts), bool) if classified is None else np.asarray(classified, bool)
     oc = params.obstacle.resolution_m
     cells = np.floor(pts[~on_robots, :2] / oc).astype(np.int64)
-    flagged = obstacle[~on_robots]
+    flagged, known = obstacle[~on_robots], known[~on_robots]
     empty = np.zeros((0, 2))
     if len(cells) == 0:
         return ObstacleScore(None, None, 0, 0, int(on_robots.sum()), int((on_robots & obstacle).sum()), empty, empty, empty)
     origin = cells.min(axis=0) - params.obstacle.window_cells
     shape = tuple(int(v) for v in cells.max(axis=0) - origin + params.obstacle.window_cells + 1)
-    seen = np.zeros(shape, bool)
-    seen[tuple((cells - origin).T)] = True
-    mapped = np.zeros(shape, bool)
-    mapped[tuple((cells[flagged] - origin).T)] = True
-    true = true_obstacle_cells(terrain, origin, shape, params) & seen
+
+    def grid(of: np.ndarray) -> np.ndarray:
+        out = np.zeros(shape, bool)
+        out[tuple((cells[of] - origin).T)] = True
+        return out
+
+    mapped = grid(flagged)
+    true_seen = true_obstacle_cells(terrain, origin, shape, params) & grid(np.ones(len(cells), bool))
+    true = true_seen & grid(known)
     one = np.ones((3, 3), bool)
-    tp = mapped & binary_dilation(true, one)
+    tp = mapped & binary_dilation(true_seen, one)
     found = true & binary_dilation(mapped, one)
 
     def centres(mask):
@@ -210,18 +225,25 @@ def score_obstacles(
 
 
 def map_quality(
-    points_world: np.ndarray, obstacle: np.ndarray, terrain: Terrain, params: MapQualityParams | None = None, on_robots: np.ndarray | None = None
+    points_world: np.ndarray,
+    obstacle: np.ndarray,
+    terrain: Terrain,
+    params: MapQualityParams | None = None,
+    on_robots: np.ndarray | None = None,
+    classified: np.ndarray | None = None,
 ) -> MapQuality:
     """Accuracy, completeness and obstacle precision/recall of a map (points in the world
     frame, (n, 3), with their obstacle flags) against the terrain it was built on; points
-    ``on_robots`` (bool (n,)) are left out of the obstacle scores (:func:`score_obstacles`)."""
+    ``on_robots`` (bool (n,)) are left out of the obstacle scores, which cover only the
+    ``classified`` points (bool (n,); None: all) (:func:`score_obstacles`)."""
     params = params or MapQualityParams()
     pts = np.asarray(points_world, float)
     obstacle = np.asarray(obstacle, bool)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or obstacle.shape != (len(pts),):
         raise MapEvaluationError(f"need (n, 3) points with n >= 1 and (n,) obstacle flags, got {pts.shape} and {obstacle.shape}")
-    if on_robots is not None and np.shape(on_robots) != (len(pts),):
-        raise MapEvaluationError(f"on_robots must have shape ({len(pts)},), got {np.shape(on_robots)}")
+    for name, mask in (("on_robots", on_robots), ("classified", classified)):
+        if mask is not None and np.shape(mask) != (len(pts),):
+            raise MapEvaluationError(f"{name} must have shape ({len(pts)},), got {np.shape(mask)}")
     scored = _outside_lander(terrain, pts[:, :2], params.lander_margin_m)
     if not scored.any():
         raise MapEvaluationError("every map point lies on the lander")
@@ -246,4 +268,4 @@ def map_quality(
         "explored_area_m2": float(len(explored) * ec * ec),
         "surface_samples": len(surface),
     }
-    return MapQuality(accuracy, completeness, score_obstacles(pts, obstacle, terrain, params, on_robots))
+    return MapQuality(accuracy, completeness, score_obstacles(pts, obstacle, terrain, params, on_robots, classified))

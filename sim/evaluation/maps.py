@@ -2,8 +2,9 @@
 
 ::
 
-    maps/<robot>.ply            global point cloud of the robot's map (binary PLY, map frame):
-                                x y z, grey colour, intensity, obstacle flag, robot number, submap index
+    maps/<robot>.ply            global point cloud of the robot's map (binary PLY, map frame): x y z,
+                                grey colour, intensity, obstacle flag, classified flag, robot number,
+                                submap index
     maps/<robot>.voxels.npz     merged log-odds voxel grid (``slam.voxels.VoxelGrid.to_arrays``)
     maps/<robot>.occupied.ply   centres of its occupied voxels (map frame)
     map_topdown.png             per robot: map points by height, obstacles, submap origins, true path
@@ -46,7 +47,7 @@ from sim.evaluation import trajectory
 from sim.evaluation.inputs import MapInput, TeamTruth
 from sim.evaluation.map_quality import MapQualityParams, ObstacleScore, map_quality, score_obstacles
 from sim.world.terrain import Terrain
-from slam.globalmap import GlobalMap
+from slam.globalmap import Composition, GlobalMap
 from slam.submap import Submap
 from slam.voxels import VoxelGrid
 
@@ -61,10 +62,11 @@ class MapPlot:
     obstacles: ObstacleScore  # of the map as held: true, false and missed obstacle cells
 
 
-def compose(robot_map: MapInput) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str], Any]:
+def compose(robot_map: MapInput) -> tuple[dict, Composition, list[str], Any]:
     """The robot's global map from its placed submaps and its active one: poses by
-    submap key, points, obstacle flags, intensities, submap labels (robot number, submap
-    index), the robot names the numbers stand for, and the voxel grid.
+    submap key, the point cloud (points, obstacle flags, intensities, submap labels (robot
+    number, submap index), classified flags), the robot names the numbers stand for, and
+    the voxel grid.
     With the graph, the team's map: every submap the robot holds (its peers' included)
     on the graph's submap origins; without it, its own submaps on its filter's chained
     frame switches (:func:`sim.evaluation.inputs.map_input` places them)."""
@@ -74,10 +76,10 @@ def compose(robot_map: MapInput) -> tuple[dict, np.ndarray, np.ndarray, np.ndarr
     for submap, origin in robot_map.placed:
         gmap.set_submap(submap)
         poses[submap.key] = origin
-    points, obstacle, intensity, labels = gmap.compose(poses, current=robot_map.current)
+    cloud = gmap.compose(poses, current=robot_map.current)
     voxels = gmap.voxel_grid(poses, current=robot_map.current)
     names = gmap.robots(robot_map.current[0] if robot_map.current else None)
-    return poses, points, obstacle, intensity, labels, names, voxels
+    return poses, cloud, names, voxels
 
 
 def map_section(
@@ -87,7 +89,8 @@ def map_section(
     metrics and what the top-down plot draws of it."""
     if robot_map is None or robot_map.start_t is None:
         return {"status": "no mapping" if robot_map is None else "not started"}, None
-    poses, points, obstacle, intensity, labels, names, voxels = compose(robot_map)
+    poses, cloud, names, voxels = compose(robot_map)
+    points, obstacle, labels = cloud.points, cloud.obstacle, cloud.labels
     own = robot_map.own_submaps
     sizes = [s.size_bytes for s in own]
     reasons = [r for _, r in robot_map.partitions]
@@ -104,7 +107,7 @@ def map_section(
         "voxels": len(voxels),
         "occupied_voxels": len(voxels.occupied_centers()),
     }
-    write_map_files(out / "maps", name, points, obstacle, intensity, labels, names, voxels)
+    write_map_files(out / "maps", name, cloud, names, voxels)
     if len(points) == 0:
         section["quality"] = None
         return section, None
@@ -114,7 +117,7 @@ def map_section(
     submaps = [s for s, _ in robot_map.placed] + ([robot_map.current[0]] if robot_map.current else [])
     submap_of = _submap_of(labels, names, submaps)
     params = MapQualityParams(obstacle=robot_map.obstacle)
-    quality = map_quality(world, obstacle, terrain, params, on_robots(world, submap_of, submaps, truth, params))
+    quality = map_quality(world, obstacle, terrain, params, on_robots(world, submap_of, submaps, truth, params), cloud.classified)
     section["quality"] = quality.metrics()
     classification = own_submaps_on_truth(name, robot_map, truth, terrain)
     section["classification"] = classification.metrics() if classification is not None else None
@@ -176,31 +179,31 @@ def own_submaps_on_truth(name: str, robot_map: MapInput, truth: TeamTruth, terra
     gmap = GlobalMap(point_resolution_m=cfg.point_resolution_m, voxel_resolution_m=cfg.voxel_resolution_m)
     for submap in finished:
         gmap.set_submap(submap)
-    points, obstacle, _, labels = gmap.compose({s.key: origins[s.frame_index] for s in finished}, current=current)
-    if len(points) == 0:
+    cloud = gmap.compose({s.key: origins[s.frame_index] for s in finished}, current=current)
+    if len(cloud.points) == 0:
         return None
     own = finished + ([active] if current is not None else [])
-    world = np.asarray(points, float)
+    world = np.asarray(cloud.points, float)
     params = MapQualityParams(obstacle=robot_map.obstacle)
-    on = on_robots(world, _submap_of(labels, [name], own), own, truth, params)
-    return score_obstacles(world, obstacle, terrain, params, on)
+    on = on_robots(world, _submap_of(cloud.labels, [name], own), own, truth, params)
+    return score_obstacles(world, cloud.obstacle, terrain, params, on, cloud.classified)
 
 
 def _share(value: float | None) -> str:
     return "-" if value is None else f"{100 * value:.0f} %"
 
 
-def write_map_files(
-    maps: Path, name: str, points: np.ndarray, obstacle: np.ndarray, intensity: np.ndarray, labels: np.ndarray, names: list[str], voxels: VoxelGrid
-) -> None:
+def write_map_files(maps: Path, name: str, cloud: Composition, names: list[str], voxels: VoxelGrid) -> None:
     """The robot's map files in ``maps`` (thesis 5.2.2), from its composed map (:func:`compose`): the point cloud
-    (``<name>.ply``: grey colour, intensity, obstacle flag, robot number in ``names``, submap index), the voxel
-    grid (``<name>.voxels.npz``, :meth:`slam.voxels.VoxelGrid.to_arrays`) and its occupied voxels' centres
-    (``<name>.occupied.ply``)."""
+    (``<name>.ply``: grey colour, intensity, obstacle flag, classified flag, robot number in ``names``, submap
+    index), the voxel grid (``<name>.voxels.npz``, :meth:`slam.voxels.VoxelGrid.to_arrays`) and its occupied
+    voxels' centres (``<name>.occupied.ply``)."""
     maps.mkdir(parents=True, exist_ok=True)
-    fields = {"red": intensity, "green": intensity, "blue": intensity, "intensity": intensity, "obstacle": obstacle.astype(np.uint8)}
-    fields |= {"robot": labels[:, 0].astype(np.uint8), "submap": labels[:, 1].astype(np.int32)}
-    write_ply(maps / f"{name}.ply", points, fields, tuple(f"robot {number} {robot}" for number, robot in enumerate(names)))
+    i = cloud.intensity
+    fields = {"red": i, "green": i, "blue": i, "intensity": i}
+    fields |= {"obstacle": cloud.obstacle.astype(np.uint8), "classified": cloud.classified.astype(np.uint8)}
+    fields |= {"robot": cloud.labels[:, 0].astype(np.uint8), "submap": cloud.labels[:, 1].astype(np.int32)}
+    write_ply(maps / f"{name}.ply", cloud.points, fields, tuple(f"robot {number} {robot}" for number, robot in enumerate(names)))
     np.savez_compressed(maps / f"{name}.voxels.npz", **voxels.to_arrays())
     write_ply(maps / f"{name}.occupied.ply", voxels.occupied_centers(), {})
 

@@ -112,7 +112,7 @@ class RockyScene:
             image, depth, T_world_cam = self.view(self.head_pose(xy, yaw))
             T_origin_cam = inv @ T_world_cam
             classification = classify_depth(depth, self.calibration, T_origin_cam, ObstacleParams())
-            builder.integrate(depth, T_origin_cam, classification.pixel_obstacles, image, 0.2 * i)
+            builder.integrate(depth, T_origin_cam, classification.pixel_obstacles, image, 0.2 * i, classified=classification.pixel_classified)
         submap = builder.finish(0.2 * images, index + 1)
         return replace(submap, index=index), origin  # the builder numbers from 0
 
