@@ -62,6 +62,17 @@ def test_error_per_distance_and_bandwidth_per_robot():
     assert f"1/{LRU_GUPPY_PRO_F125B.bytes_per_s / 7000:.0f} of the LRU camera's 35.6 MB/s" in band.text
 
 
+@pytest.mark.parametrize(("p95", "verdict"), [(20.0, "reproduced"), (40.0, "not reproduced")])
+def test_link_keeps_up_compares_submap_latency_with_the_time_between_a_robots_submaps(p95, verdict):
+    data = []
+    for seed in range(4):
+        run = {"comms.duration_s": 300.0, "comms.by_kind.submap.offered_msgs": 20.0, "comms.by_kind.submap.latency_s.p95": p95 + seed * 0.1}
+        data += rows("slow", seed, {"a": {}, "b": {}}, run)  # two robots, 10 submaps each: one per 30 s
+    figure = fidelity.link_keeps_up(pd.DataFrame(data), "slow")
+    assert figure.n == 4 and figure.verdict == verdict
+    assert figure.text.startswith(f"submap latency p95 {p95 + 0.15:.1f} s") and figure.text.endswith("against 30 s between a robot's submaps")
+
+
 def test_claims_without_results_say_so(tmp_path):
     lines = fidelity.table_rows(tmp_path)
     assert len(lines) == 2 + len(fidelity.CLAIMS)
