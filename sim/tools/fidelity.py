@@ -73,6 +73,11 @@ def per_seed(table: pd.DataFrame, variant: str, value: Callable[[pd.DataFrame], 
     return pd.Series(value(rows).to_numpy(float), index=rows["seed"].to_numpy()).groupby(level=0).mean()
 
 
+def robots_per_run(table: pd.DataFrame) -> pd.Series:
+    """For each completed row, how many robots its run has (to share a run's totals among them)."""
+    return _completed(table).groupby("run")["robot"].transform("count")
+
+
 def column(name: str) -> Callable[[pd.DataFrame], pd.Series]:
     return lambda rows: pd.to_numeric(rows[name], errors="coerce")
 
@@ -121,7 +126,7 @@ def error_per_distance(table: pd.DataFrame, variant: str, bound_percent: float) 
 def bandwidth(table: pd.DataFrame, variant: str) -> Figure:
     """Submap bytes per second and robot against the raw stereo streams, at the simulated
     camera and at the LRU's (comms.load.LRU_GUPPY_PRO_F125B)."""
-    robots = _completed(table).groupby("run")["robot"].transform("count")
+    robots = robots_per_run(table)
 
     def per_robot(name: str) -> Callable[[pd.DataFrame], pd.Series]:
         return lambda rows: column(name)(rows) / robots.loc[rows.index]
@@ -141,7 +146,7 @@ def bandwidth(table: pd.DataFrame, variant: str) -> Figure:
 def link_keeps_up(table: pd.DataFrame, variant: str) -> Figure:
     """The submaps' 95th-percentile delivery latency against the mean time between two of
     a robot's submaps (``comms.duration_s`` over the submaps each robot offered)."""
-    robots = _completed(table).groupby("run")["robot"].transform("count")
+    robots = robots_per_run(table)
 
     def interval(rows: pd.DataFrame) -> pd.Series:
         return column("comms.duration_s")(rows) * robots.loc[rows.index] / column("comms.by_kind.submap.offered_msgs")(rows)
