@@ -59,10 +59,15 @@ class MapEvaluationError(ValueError):
     """A map that cannot be scored (no points, points off the terrain)."""
 
 
-def _rock_surface(terrain: Terrain, spacing: float) -> np.ndarray:
-    """Points on the rock hulls' faces above the ground, about ``spacing`` apart (world frame)."""
+def _rock_surface(terrain: Terrain, spacing: float, bounds: tuple[tuple[float, float], tuple[float, float]]) -> np.ndarray:
+    """Points on the rock hulls' faces above the ground, about ``spacing`` apart (world frame),
+    of the rocks that reach into ``bounds`` ((x0, y0), (x1, y1))."""
+    (x0, y0), (x1, y1) = bounds
     out = []
     for rock in terrain.rocks:
+        reach = float(np.linalg.norm(rock.vertices[:, :2], axis=1).max())  # the hull within this of its centre in xy
+        if not (x0 - reach <= rock.center[0] <= x1 + reach and y0 - reach <= rock.center[1] <= y1 + reach):
+            continue
         hull = ConvexHull(rock.vertices)
         c, s = math.cos(rock.yaw), math.sin(rock.yaw)
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -107,7 +112,7 @@ class SurfaceTruth:
         ground = np.column_stack([gx, gy, terrain.height_at(gx, gy)])
         covered = terrain.surface_height_at(gx, gy) > ground[:, 2] + 1e-3  # under a rock: not visible
         ground = ground[~covered]
-        rocks = _rock_surface(terrain, sp)
+        rocks = _rock_surface(terrain, sp, ((x0, y0), (x1, y1)))
         if len(rocks):
             inside = (rocks[:, 0] >= x0) & (rocks[:, 0] <= x1) & (rocks[:, 1] >= y0) & (rocks[:, 1] <= y1)
             rocks = rocks[inside]
