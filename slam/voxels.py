@@ -548,3 +548,10 @@ class VoxelGrid:
         grid._keys = keys
         grid._values = np.clip(q * np.float32(_QUANT_STEP), L_MIN, L_MAX).astype(np.float32)
         return grid
+
+
+def compile_kernels() -> None:
+    """Compile the ray traversal for the argument types ``VoxelGrid.integrate`` passes, or load it from Numba's
+    cache (seconds the first time, about 1 s from the cache), so that processes forked afterwards start with it
+    (sim/batch/preload.py)."""
+    VoxelGrid(DEFAULT_RESOLUTION).integrate(np.array([[0.25, 0.05, 0.05]]), np.array([0.05, 0.05, 0.05]))

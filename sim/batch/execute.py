@@ -15,8 +15,9 @@ what it produced is kept and ``error`` says why); ``crashed`` (the worker proces
 ``timeout`` (killed after the batch's ``timeout_s``); ``pending`` (not run yet, or
 interrupted).
 
-Local pool: a ``forkserver`` that has imported the simulator once forks one fresh
-process per run (MuJoCo's GL contexts stay per process), at most ``workers`` at a time.
+Local pool: a ``forkserver`` that has imported the simulator and loaded its compiled kernels
+once (:mod:`sim.batch.preload`) forks one fresh process per run (MuJoCo's GL contexts stay
+per process), at most ``workers`` at a time.
 Ray: the same function as a task with ``max_calls=1`` (a fresh worker process per run),
 in a temporary folder on the worker; the folder comes back as a tar archive through the
 object store, so a cluster needs no shared file system. A cluster's nodes need
@@ -200,7 +201,7 @@ def run_local(specs: list[RunSpec], out: Path, workers: int, on_start: StartHook
     """At most ``workers`` runs at a time, each in a fresh process forked from a server
     that has imported the simulator; a run past its timeout is killed."""
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(["sim.batch.execute", "sim.run.run_folder"])
+    ctx.set_forkserver_preload(["sim.batch.execute", "sim.batch.preload"])
     queue = list(reversed(specs))
     running: dict[Any, tuple[Any, Any, RunSpec, float]] = {}  # process sentinel -> (process, connection, spec, start)
     try:
