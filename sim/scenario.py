@@ -369,7 +369,7 @@ class RouteConfig(StrictModel):
 
 
 class StartConfig(StrictModel):
-    xy: XY = Field((0.0, 0.0), description="start position (m, origin at the terrain centre)")
+    xy: XY = Field((0.0, 0.0), description="start position (m, origin at the terrain centre); two robots start at least the sum of their presets' body radii apart")
     yaw_deg: float = Field(0.0, description="start heading, counter-clockwise from +x")
 
 
@@ -1096,9 +1096,20 @@ class Scenario(StrictModel):
 
     @model_validator(mode="after")
     def _check_run(self) -> Scenario:
-        """What the run would otherwise find at set-up: robots placed on the lander, a VO rig
-        a robot lacks, a link time series or keep-clear discs too large, no room for rocks."""
+        """What the run would otherwise find at set-up: robots placed on the lander or on each
+        other, a VO rig a robot lacks, a link time series or keep-clear discs too large, no room
+        for rocks."""
         lander = self.terrain.lander
+        for i, a in enumerate(self.robots):
+            for b in self.robots[i + 1 :]:
+                keep = PRESETS[a.preset].body_radius_m + PRESETS[b.preset].body_radius_m
+                gap = math.hypot(a.start.xy[0] - b.start.xy[0], a.start.xy[1] - b.start.xy[1])
+                if gap < keep:
+                    raise ValueError(
+                        f"robots {a.name} and {b.name} start {gap:.2f} m apart, inside each other: keep at least {keep:.2f} m "
+                        f"between their start.xy (their presets reach {PRESETS[a.preset].body_radius_m:.2g} and "
+                        f"{PRESETS[b.preset].body_radius_m:.2g} m from their centres)"
+                    )
         for robot in self.robots:
             preset = PRESETS[robot.preset]
             rig = self.slam.vo_rig or preset.default_vo_rig

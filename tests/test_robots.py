@@ -71,7 +71,8 @@ def assert_reached(robot):
 
 def test_make_robot_presets_names_and_errors():
     sc = load_scenario({"name": "t", "duration_s": 1, "robots": [
-        {"name": "r1", "preset": "lru"}, {"name": "r2", "preset": "lru_wide"}, {"name": "a1", "preset": "ardea"}]})
+        {"name": "r1", "preset": "lru"}, {"name": "r2", "preset": "lru_wide", "start": {"xy": [3, 0]}},
+        {"name": "a1", "preset": "ardea", "start": {"xy": [0, 3]}}]})
     tags = sc.assigned_tag_ids()
     robots = [make_robot(c, tags[c.name]) for c in sc.robots]
     assert [type(r).__name__ for r in robots] == ["LRU", "LRUWide", "Ardea"]

@@ -38,7 +38,7 @@ SCENARIOS = sorted(Path(__file__).parents[1].joinpath("scenarios").glob("*.yaml"
 
 
 def minimal(**extra):
-    raw = {"name": "t", "duration_s": 10, "robots": [{"name": "a", "preset": "lru"}, {"name": "b", "preset": "ardea"}]}
+    raw = {"name": "t", "duration_s": 10, "robots": [{"name": "a", "preset": "lru"}, {"name": "b", "preset": "ardea", "start": {"xy": [3, 0]}}]}
     raw.update(extra)
     return raw
 
@@ -84,6 +84,10 @@ def test_bad_literal_lists_allowed_values():
 def test_cross_field_checks():
     assert any("unique" in p for p in problems(minimal(robots=[{"name": "a", "preset": "lru"}] * 2)))
     assert any("outside the terrain" in p for p in problems(minimal(robots=[{"name": "a", "preset": "lru", "start": {"xy": [99, 0]}}])))
+    # two bodies in one place: the rover reaches 0.64 m from its centre, the hexacopter 0.33 m
+    (line,) = problems(minimal(), ["robots.b.start.xy=[0.5, 0.6]"])
+    assert "robots a and b start 0.78 m apart, inside each other: keep at least 0.97 m" in line
+    assert load_scenario(minimal(), ["robots.b.start.xy=[0.6, 0.8]"]).robot("b").start.xy == (0.6, 0.8)  # 1.0 m: clear
     clash = minimal(robots=[{"name": "a", "preset": "lru", "tag_ids": [0, 1, 2]}], terrain={"lander": {"tag_id": 0}})
     assert any("already used by lander" in p for p in problems(clash))
     rover_alt = minimal(robots=[{"name": "a", "preset": "lru", "route": {"waypoints": [[1, 1, 3]]}}])
