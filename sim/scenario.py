@@ -369,7 +369,10 @@ class RouteConfig(StrictModel):
 
 
 class StartConfig(StrictModel):
-    xy: XY = Field((0.0, 0.0), description="start position (m, origin at the terrain centre); two robots start at least the sum of their presets' body radii apart")
+    xy: XY = Field(
+        (0.0, 0.0),
+        description="start position (m, origin at the terrain centre); two robots start at least the sum of their presets' body radii apart",
+    )
     yaw_deg: float = Field(0.0, description="start heading, counter-clockwise from +x")
 
 
