@@ -14,6 +14,7 @@ come from the on-board measurements of thesis 8.4.
 
 from __future__ import annotations
 
+import copy
 import inspect
 import itertools
 import math
@@ -190,10 +191,24 @@ class RidgeConfig(StrictModel):
     width_m: PositiveFloat = Field(2.0, description="full width of the cos^2 cross-section")
 
 
+#: A rock's horizontal reach is at most this times half its diameter (the radial jitter of its shape, sim/world/terrain.py).
+ROCK_MAX_REACH_FACTOR = 1.15
+
+
+class PlacedRockConfig(StrictModel):
+    xy: XY = Field(..., description="centre of the rock (m, origin at the terrain centre)")
+    diameter_m: RockDiameter = Field(..., description="longest horizontal extent; the shape is drawn like the random rocks'")
+
+
 class RockConfig(StrictModel):
     """Rocks as separate geoms; diameters follow a truncated power law
     N(>D) ~ D^-exponent, the usual model of planetary rock size-frequency."""
 
+    placed: list[PlacedRockConfig] = Field(
+        [],
+        max_length=100,
+        description="rocks exactly where given (e.g. in a robot's way), besides the `count` random ones; only robot starts and the lander stay clear",
+    )
     count: int = Field(25, ge=0, le=2000, description="number of rocks")
     diameter_m: tuple[RockDiameter, RockDiameter] = Field((0.15, 0.8), description="[min, max] diameter of the truncated power law")
     power_law_exponent: float = Field(2.5, gt=0, le=6, description="k of N(>D) ~ D^-k: larger makes small rocks more frequent")
@@ -384,6 +399,22 @@ class ComputerConfig(StrictModel):
     fpga: bool = Field(True, description="stereo matching runs on its own FPGA device")
 
 
+class NavigationConfig(StrictModel):
+    """What the robot's guidance steers by (thesis 9.3: the rovers navigated on their
+    on-board estimates and obstacle maps)."""
+
+    pose_source: Literal["truth", "estimate"] = Field(
+        "truth",
+        description=(
+            "truth: the controller reads the simulator's pose and drives straight at each waypoint (scripted scenarios); "
+            f"estimate: it steers by the robot's own online SLAM pose (eq. 4.6) and plans around the obstacles on its rolling "
+            f"obstacle map (needs slam.enabled and slam.mapping.enabled; presets: {_per_preset('navigates_on_estimate')})"
+        ),
+    )
+    replan_period_s: PositiveFloat = Field(1.0, le=30, description="estimate: the path is planned again this often on the map as it is then")
+    lookahead_m: PositiveFloat = Field(0.8, le=5, description="estimate: the controller steers at the path's point this far ahead")
+
+
 class RobotConfig(StrictModel):
     name: str = Field(..., pattern=NAME_PATTERN, description="unique robot name, also its network node ('lander' is taken)")
     preset: Literal["lru", "lru_wide", "ardea"] = Field(
@@ -398,6 +429,7 @@ class RobotConfig(StrictModel):
     imu: ImuConfig = Field(ImuConfig(), description="the inertial measurement unit")
     wheel_odometry: WheelOdometryConfig = Field(WheelOdometryConfig(), description="wheel encoder odometry (rovers only)")
     computer: ComputerConfig = Field(ComputerConfig(), description="the on-board computer that runs the robot's jobs")
+    navigation: NavigationConfig = Field(NavigationConfig(), description="what the robot's guidance steers by")
 
     @property
     def marker_count(self) -> int:
@@ -1115,6 +1147,11 @@ class Scenario(StrictModel):
                     )
         for robot in self.robots:
             preset = PRESETS[robot.preset]
+            if robot.navigation.pose_source == "estimate" and not (self.slam.enabled and self.slam.mapping.enabled):
+                raise ValueError(
+                    f"robot {robot.name}: navigation.pose_source: estimate steers by the on-board estimate and plans on its "
+                    "obstacle map: it needs slam.enabled and slam.mapping.enabled"
+                )
             rig = self.slam.vo_rig or preset.default_vo_rig
             if rig not in preset.stereo_rig_names:
                 raise ValueError(
@@ -1130,6 +1167,18 @@ class Scenario(StrictModel):
                         f"robot {robot.name}: {what} {[x, y]} lies on the lander at {list(lander.xy)} (keep {keep:.2f} m from its centre: "
                         f"its footprint is {LANDER_RADIUS:g} m in radius, preset {robot.preset} reaches {preset.body_radius_m:.2g} m)"
                     )
+        half = self.terrain.size_m / 2
+        for n, rock in enumerate(self.terrain.rocks.placed):
+            if max(abs(rock.xy[0]), abs(rock.xy[1])) + ROCK_MAX_REACH_FACTOR * rock.diameter_m / 2 > half - 0.1:
+                raise ValueError(
+                    f"terrain.rocks.placed.{n}: a {rock.diameter_m:g} m rock at {list(rock.xy)} reaches off the {self.terrain.size_m:g} m terrain"
+                )
+            for robot in self.robots:
+                keep = PRESETS[robot.preset].body_radius_m + rock.diameter_m / 2
+                if math.hypot(rock.xy[0] - robot.start.xy[0], rock.xy[1] - robot.start.xy[1]) < keep:
+                    raise ValueError(f"terrain.rocks.placed.{n}: the rock at {list(rock.xy)} lies on robot {robot.name}'s start (keep {keep:.2f} m)")
+            if lander is not None and math.hypot(rock.xy[0] - lander.xy[0], rock.xy[1] - lander.xy[1]) < LANDER_RADIUS + rock.diameter_m / 2:
+                raise ValueError(f"terrain.rocks.placed.{n}: the rock at {list(rock.xy)} lies on the lander at {list(lander.xy)}")
         samples = self.duration_s / self.comms.stats_interval_s
         if samples > MAX_LINK_SAMPLES:
             raise ValueError(
@@ -1407,7 +1456,7 @@ def load_scenario(source: str | Path | dict, overrides: list[str] | None = None,
     Relative file paths in it (``comms`` link traces) are taken from ``base_dir``: by
     default the scenario file's folder, or the current directory for a dict."""
     if isinstance(source, dict):
-        raw, label = source, "<dict>"
+        raw, label = copy.deepcopy(source), "<dict>"  # overrides must not change the caller's dict
     else:
         path = Path(source)
         base_dir = path.parent if base_dir is None else base_dir

@@ -60,6 +60,7 @@ import numpy as np
 from matplotlib.colors import LightSource
 
 from sim.evaluation import inputs, loop_closures, maps, online_slam, trajectory
+from sim.evaluation.navigation import navigation_metrics
 from sim.evaluation.trajectory import ErrorOverTime
 from sim.run.faults import fault_metrics
 from sim.run.runner import Run
@@ -148,6 +149,7 @@ def _robot_results(run: Run, out: Path, name: str, truth: inputs.TeamTruth, reco
         "final_status": robot.status,
         "distance_m": trajectory.path_length(truth.of(name)),
         "route": {"waypoints": len(waypoints), **counts},
+        "navigation": navigation_metrics(robot, run.collisions.of(name), np.asarray(log.guidance_t), np.asarray(log.guidance_xy), truth.of(name)),
         "camera_frames": log.frames,
         "stereo": stereo,
         "imaging": _imaging(log),
@@ -489,6 +491,15 @@ def _health_summary(health: dict[str, Any] | None) -> str:
     return f" (estimator {health['state']} since {health['since']:.1f} s: {health['reason']})"
 
 
+def _navigation_summary(nav: dict[str, Any] | None) -> str:
+    if not nav:
+        return ""
+    out = f", {nav['collisions']} collision{'s' * (nav['collisions'] != 1)}" if nav["collisions"] else ""
+    if "guidance_error_m" in nav:
+        out += f", steered by its estimate ({nav['guidance_error_m']['final']:.2f} m off at the end)"
+    return out
+
+
 def summary_lines(metrics: dict[str, Any]) -> list[str]:
     """Short human summary of a run for the CLI."""
     rt = metrics["runtime"]
@@ -503,6 +514,7 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             f"{name}: {m['final_status']}{_health_summary(m.get('health'))}, {m['distance_m']:.1f} m, "
             f"waypoints {route['reached']}/{route['waypoints']} reached"
             + (f", {route['failed']} failed" if route["failed"] else "")
+            + _navigation_summary(m.get("navigation"))
             + (f"; {stereo} (2-6 m)" if stereo else "")
             + _filter_summary(m.get("filter"))
             + _slam_summary(m.get("slam"))

@@ -94,6 +94,7 @@ class Ardea(Robot):
     default_vo_rig = "down"
     max_speed_mps = 5.0  # chosen: at the position controller's 4 m/s^2 it brakes from 5 m/s within about 3 m
     antenna_height_m = 0.3
+    ground_contact_geoms = ("skid_l", "skid_r")
     body_radius_m = ROTOR_RADIUS_M + 0.05  # arm ends around the rotor sites
     #: Its downward stereo matches from the matcher's minimum depth on, and closer ground
     #: (standing, taking off, landing) gives SGBM mismatches that put points up to 2 m off.

@@ -7,9 +7,12 @@ then driven by :meth:`Robot.control`, which the runner calls at
 ``physics.control_rate_hz`` before stepping. Robots move only through their
 actuators: no teleporting, no mocap.
 
-Controllers read the simulator's true state (pose, velocities). That is a choice of
-the testbed, not of the thesis: the robots' guidance is not what is under test, their
-SLAM is, and it sees only sensor data.
+Controllers read the simulator's true state (pose, velocities) by default. That is a
+choice of the testbed, not of the thesis: in scripted scenarios the robots' guidance is
+not what is under test, their SLAM is, and it sees only sensor data. With
+``navigation.pose_source: estimate`` a preset that supports it (``navigates_on_estimate``)
+steers by :meth:`Robot.guidance_pose`, the robot's own belief, and plans around what it
+mapped (sim/robots/path_following.py), so SLAM errors change where it goes (thesis 9.3).
 
 Frames: the robot's body frame is its free base body (x forward, y left, z up) with
 the IMU site at its origin, axes aligned, so ``pose()`` is the body pose. Marker
@@ -32,6 +35,7 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
+from sim.robots.path_following import OwnEstimate, PathFollower
 from sim.robots.route import RouteTracker, WaypointRecord
 from sim.world.camera_rig import StereoRig
 from sim.world.markers import MarkerSpec, add_marker
@@ -121,6 +125,12 @@ class Robot(ABC):
     body_radius_m: ClassVar[float]
     #: Map only above this height over the take-off point (filter estimate, m); None: always.
     min_mapping_height_m: ClassVar[float | None] = None
+    #: Local names of its geoms that touch the ground by design (wheels, skids): their
+    #: contacts with rocks are no collisions (sim/run/collisions.py).
+    ground_contact_geoms: ClassVar[tuple[str, ...]] = ()
+    #: Its guidance can steer by the robot's own estimate (``navigation.pose_source: estimate``,
+    #: sim/robots/path_following.py).
+    navigates_on_estimate: ClassVar[bool] = False
     #: Its cameras sit on a pan-tilt head whose encoders give ``T_body_cam``: pan about the
     #: body's z axis, tilt about the cameras' x axis (their encoder offsets are calibration
     #: errors, sim/world/calibration_errors.py).
@@ -132,6 +142,8 @@ class Robot(ABC):
         that it cannot do (:class:`sim.scenario.RobotConfig` validation calls this)."""
         if cfg.tag_ids is not None and len(cfg.tag_ids) != cls.marker_count:
             raise ValueError(f"preset {cfg.preset} carries {cls.marker_count} markers, got {len(cfg.tag_ids)} tag_ids")
+        if cfg.navigation.pose_source == "estimate" and not cls.navigates_on_estimate:
+            raise ValueError(f"navigation.pose_source: estimate is not built for preset {cfg.preset} yet; it flies by the simulator's truth")
         if cfg.route.speed_mps > cls.max_speed_mps:
             raise ValueError(f"route.speed_mps: got {cfg.route.speed_mps:g}: preset {cfg.preset} goes at most {cls.max_speed_mps:g} m/s")
 
@@ -155,6 +167,10 @@ class Robot(ABC):
         self.phase = "idle"
         self.tipped_over = False
         self.dead = False
+        #: What the robot's computer believes (set by the run with ``navigation.pose_source: estimate``).
+        self.own_estimate: OwnEstimate | None = None
+        #: Its path planner and follower, for presets that plan on their own map (set when bound).
+        self.follower: PathFollower | None = None
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._attached = False
@@ -288,6 +304,17 @@ class Robot(ABC):
 
     def wheel_states(self) -> list[WheelState]:
         return []
+
+    def guidance_pose(self) -> np.ndarray | None:
+        """``T_world_body`` the controller steers by: the truth, or with an :attr:`own_estimate`
+        what the robot believes (None until its filter is initialised)."""
+        if self.own_estimate is None:
+            T = np.eye(4)
+            T[:3, :3] = self.rotation()
+            T[:3, 3] = self._require_bound().site_xpos[self._imu_id]
+            return T
+        T_odom_body = self.own_estimate.odometry_pose()
+        return None if T_odom_body is None else self.own_estimate.world_from_odometry() @ T_odom_body
 
     def _is_tipped(self) -> bool:
         roll, pitch, _ = self.roll_pitch_yaw()

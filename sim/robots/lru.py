@@ -28,7 +28,10 @@ Model (body frame x forward, y left, z up, origin = IMU site at the chassis cent
   against an obstacle it makes no progress and the waypoint fails as "stuck".
 
 The route controller turns towards the waypoint (point turn beyond 60 deg of heading
-error) and drives at ``speed_mps``; a waypoint is reached within ``tolerance_m``; with
+error) and drives at ``speed_mps``; with ``navigation.pose_source: estimate`` it judges
+where it is by its own estimate and steers along a path planned around the obstacles of
+its rolling obstacle map (sim/robots/path_following.py), obstacles grown by
+``PLANNING_RADIUS_M``; a waypoint is reached within ``tolerance_m``; with
 ``scan`` the rover stops and pans its head a full turn (-180 -> +180 deg) in
 ``scan_duration_s`` (plus slewing to and from the start), its head tilted by
 ``route.scan_tilt_deg`` if set (e.g. up towards a lander's tag or another rover's mast).
@@ -48,8 +51,10 @@ import mujoco
 import numpy as np
 
 from sim.robots.base import Robot, WheelState
+from sim.robots.path_following import PathFollower
 from sim.robots.rover_control import DriveGains, drive_command, wheel_commands
-from slam.lie import wrap_angle
+from slam.lie import roll_pitch, wrap_angle, yaw_of
+from slam.navigation.planner import PlannerParams
 
 if TYPE_CHECKING:
     from sim.scenario import RobotConfig
@@ -79,6 +84,9 @@ TILT_GUARD_RELEASE_RAD = math.radians(25)  # ... until it is below this again
 BACKOFF_SPEED = 0.15  # m/s
 BACKOFF_MIN_S = 1.0
 BACKOFF_MAX_S = 5.0
+#: Obstacles grown by this much when planning: half the track width (0.42 m) and a margin, since the
+#: obstacle map marks a rock where its height steps (its rim), not always out to its foot.
+PLANNING_RADIUS_M = 0.6
 
 WHEELS = ("fl", "fr", "rl", "rr")
 WHEEL_XY = np.array([[WHEEL_X_M, WHEEL_Y_M], [WHEEL_X_M, -WHEEL_Y_M], [-WHEEL_X_M, WHEEL_Y_M], [-WHEEL_X_M, -WHEEL_Y_M]])
@@ -103,6 +111,8 @@ class LRU(Robot):
     wheel_names = WHEELS
     pan_tilt_head = True
     antenna_height_m = 1.6  # on the mast
+    navigates_on_estimate = True
+    ground_contact_geoms = tuple(f"wheel_{w}" for w in WHEELS)
     body_radius_m = math.hypot(WHEEL_X_M, WHEEL_Y_M) + WHEEL_RADIUS_M  # wheel corners: 0.64 m
 
     @classmethod
@@ -196,6 +206,8 @@ class LRU(Robot):
         self._tilt_q = model.joint(c("tilt")).qposadr[0]
         self._steer_prev = [0.0] * len(WHEELS)
         self._backoff_t0: float | None = None
+        navigation = self.cfg.navigation
+        self.follower = PathFollower(navigation, PlannerParams(radius_m=PLANNING_RADIUS_M)) if navigation.pose_source == "estimate" else None
         self.pan_ref = 0.0
         self.tilt_ref = math.radians(DEFAULT_TILT_DEG)
         self._apply(0.0, 0.0)
@@ -255,11 +267,20 @@ class LRU(Robot):
         else:
             self.phase = "drive"
             self.route.begin_leg(t, xy)
+            if self.follower is not None:
+                self.follower.reset()
 
     def _control(self, t: float, terrain: Terrain) -> None:
-        pos, _ = self.pose()
-        xy = pos[:2]
-        roll, pitch, yaw = self.roll_pitch_yaw()
+        true_xy = self.pose()[0][:2]  # for the waypoint records only
+        estimate = self.own_estimate
+        T_odom_body = None if estimate is None else estimate.odometry_pose()
+        if estimate is not None and T_odom_body is None:  # its filter is not initialised yet
+            self._apply(0.0, 0.0)
+            return
+        T = self.guidance_pose() if estimate is None else estimate.world_from_odometry() @ T_odom_body
+        xy = T[:2, 3]
+        roll, pitch = roll_pitch(T[:3, :3])
+        yaw = yaw_of(T[:3, :3])
         tilt = max(abs(roll), abs(pitch))
         route = self.route
         v = w = 0.0
@@ -268,7 +289,7 @@ class LRU(Robot):
         if self.phase == "drive":
             if route.distance(xy) < route.cfg.tolerance_m:
                 scan = route.target.scan
-                route.reach(t, xy)
+                route.reach(t, true_xy)
                 if scan:
                     self.phase = "scan"
                     self._scan_t0 = t
@@ -278,10 +299,11 @@ class LRU(Robot):
                 to_goal = route.target_xy - xy
                 reason = route.check(t, xy, wrap_angle(math.atan2(to_goal[1], to_goal[0]) - yaw))
                 if reason is not None:
-                    route.fail(t, xy, reason)
+                    route.fail(t, true_xy, reason)
                     self._begin_next(t, xy)
                 else:
-                    v, w = drive_command(xy, yaw, route.target_xy, route.cfg.speed_mps, DriveGains())
+                    goal = route.target_xy if self.follower is None else self.follower.steer_point(t, estimate, T_odom_body, route.target_xy)
+                    v, w = drive_command(xy, yaw, goal, route.cfg.speed_mps, DriveGains())
                     v, w = self._tilt_guard(t, tilt, v, w)
                     self.pan_ref = self._sweep_pan(t)
         if self.phase == "scan":

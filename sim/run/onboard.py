@@ -36,6 +36,7 @@ from slam.agent import Agent, AgentParams, Outgoing, TeamMarker
 from slam.filter import FilterParams
 from slam.graph import GraphParams
 from slam.health import HealthParams
+from slam.lie import rot_z, se3, se3_inv
 from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
 from slam.matcher import MatcherParams
@@ -348,6 +349,42 @@ class OnboardStack:
         self.partitions.append((now, reason))
         self._switch_pending = False
         return out
+
+    # ------------------------------------------------------------------ guidance (sim/robots/path_following.py)
+
+    def guide(self) -> None:
+        """Let the robot steer by this stack's estimate (``navigation.pose_source: estimate``).
+        Its map frame is the gravity-aligned frame of its pose at the filter's start, which it
+        believes to be the scenario's ``start`` (where it was deployed; height plays no part)."""
+        start = self.robot.cfg.start
+        self._T_world_map = se3(rot_z(math.radians(start.yaw_deg)), [start.xy[0], start.xy[1], 0.0])
+        self._map_odom: tuple[tuple[int, int], np.ndarray] | None = None
+        self.robot.own_estimate = self
+
+    @property
+    def obstacle_map(self):
+        return self.mapper.rolling
+
+    def odometry_pose(self) -> np.ndarray | None:
+        """``T_odom_body``: the filter's latest estimate in its first local frame."""
+        est = self.estimator
+        return est.T_first_current @ est.filter.pose() if est.initialised else None
+
+    def world_from_odometry(self) -> np.ndarray:
+        """``T_world_odom``: the believed deployment pose composed with the graph's placement
+        of the current local frame against the filter's (eq. 4.6); the deployment pose alone
+        until the graph holds this robot, or without a graph. Recomputed on graph updates and
+        frame switches only."""
+        est = self.estimator
+        if not (self.exchange and est.initialised):
+            return self._T_world_map
+        frame = est.filter.frame_index
+        key = (frame, len(self.agent.stats.graph_updates))
+        if self._map_odom is None or self._map_odom[0] != key:
+            S = self.agent.pose_in_map(self.robot.name, frame, np.eye(4))
+            T_map_odom = np.eye(4) if S is None else S @ se3_inv(est.T_first_current)
+            self._map_odom = (key, self._T_world_map @ T_map_odom)
+        return self._map_odom[1]
 
     # ------------------------------------------------------------------ logging
 

@@ -31,6 +31,7 @@ from comms import Network, StereoStream, raw_stereo_load
 from sim.evaluation.image_classification import ImageCells
 from sim.robots import make_robot
 from sim.robots.base import Robot
+from sim.run.collisions import CollisionMonitor
 from sim.run.dataset import DatasetWriter, EurocDataset
 from sim.run.faults import ConditionFaults, condition_faults
 from sim.run.lanes import ComputeModel, Device, Lane, Priority
@@ -142,6 +143,8 @@ class RobotLog:
     imu_bias: Rows = field(default_factory=Rows)  # (6,) true accel and gyro biases
     odom_t: Rows = field(default_factory=Rows)
     odom: Rows = field(default_factory=Rows)  # (3,) v_x, v_y, yaw rate (measured)
+    guidance_t: Rows = field(default_factory=Rows)
+    guidance_xy: Rows = field(default_factory=Rows)  # (2,) where the robot believed it was (navigation.pose_source: estimate)
     frames: int = 0
     depth_error: dict[str, DepthErrorAccumulator] = field(default_factory=lambda: defaultdict(DepthErrorAccumulator))
     exposure: dict[str, list[tuple[float, float, float]]] = field(default_factory=lambda: defaultdict(list))  # per rig: s, gain, saturated share
@@ -207,6 +210,7 @@ class Run:
         )
         robots = [make_robot(cfg, tags[cfg.name]) for cfg in scenario.robots]
         self.world: World = build_world(scenario, self.terrain, robots)
+        self.collisions = CollisionMonitor(self.world.model, robots)
         self.calibration_errors = {
             r.name: draw_calibration_errors(r, scenario.realism.calibration, self.streams.rng("calibration", r.name)) for r in robots
         }
@@ -294,6 +298,8 @@ class Run:
         if self.scenario.slam.enabled:
             gravity = float(-self.world.model.opt.gravity[2])
             onboard = OnboardStack(self.scenario, robot, lane, IMU_PRESETS[preset], gravity, self.team_markers, self.streams)
+            if cfg.navigation.pose_source == "estimate":
+                onboard.guide()
             if self.recorder is not None:
                 every = self.scenario.output.recording_image_every
                 onboard.on_vo_result = lambda result, r=robot, o=onboard, n=every: (
@@ -507,6 +513,8 @@ class Run:
     def _sample(self, tick: int, gt_every: int) -> None:
         now = self.env.now
         data = self.world.data
+        if tick % gt_every == 0:
+            self.collisions.sample(now, data)
         for runtime in self.robots.values():
             robot, log, onboard = runtime.robot, runtime.log, runtime.onboard
             t = time.perf_counter()
@@ -514,6 +522,10 @@ class Run:
                 pos, quat = robot.pose()
                 log.gt_t.append(now)
                 log.gt_pose.append(np.concatenate([pos, quat]))
+                belief = robot.guidance_pose() if robot.own_estimate is not None else None
+                if belief is not None:
+                    log.guidance_t.append(now)
+                    log.guidance_xy.append(belief[:2, 3])
                 if self.recorder is not None:
                     self.recorder.log_pose(robot.name, now, pos, quat)
                 if onboard is not None and not robot.dead:

@@ -36,7 +36,7 @@ import scipy.sparse
 from dm_control import mjcf
 from scipy.spatial import ConvexHull, cKDTree
 
-from sim.scenario import LightRealism, TerrainConfig
+from sim.scenario import ROCK_MAX_REACH_FACTOR, LightRealism, TerrainConfig
 from sim.world.lander import (
     LANDER_DECK_HALF,
     LANDER_DECK_Z,
@@ -327,8 +327,9 @@ def _power_law_diameters(rng: np.random.Generator, n: int, d_min: float, d_max: 
 
 def _place_rocks(height_at, cfg: TerrainConfig, rng: np.random.Generator,
                  discs: Sequence[tuple[tuple[float, float], float]]) -> list[Rock]:
-    """Rocks, largest first: whole rock outside every keep-clear disc and inside the
-    terrain, no two overlapping (bounding circles). Each is a perturbed ellipsoid
+    """The scenario's ``placed`` rocks where it puts them, then the random ones, largest
+    first: whole rock outside every keep-clear disc and inside the terrain, no two
+    overlapping (bounding circles). Each is a perturbed ellipsoid
     (icosphere directions, radial jitter +-15 %, then its convex hull), sunk to its
     centre at the local terrain height, and further where the ground falls away so
     that its underside is below the terrain everywhere under it."""
@@ -336,15 +337,34 @@ def _place_rocks(height_at, cfg: TerrainConfig, rng: np.random.Generator,
     diameters = np.sort(_power_law_diameters(rng, rc.count, *rc.diameter_m, rc.power_law_exponent))[::-1]
     dirs = _icosphere()
     half = cfg.size_m / 2
-    placed_xy = np.zeros((rc.count, 2))
-    placed_r = np.zeros(rc.count)
-    rocks = []
-    for n, d in enumerate(diameters):
+    k = len(rc.placed)
+    placed_xy = np.zeros((k + rc.count, 2))
+    placed_r = np.zeros(k + rc.count)
+
+    def shape(d: float) -> tuple[np.ndarray, np.ndarray, float, float]:
         radii = d / 2 * np.array([1.0, rng.uniform(0.6, 1.0), rng.uniform(0.45, 0.8)])
-        points = dirs * radii * rng.uniform(0.85, 1.15, (len(dirs), 1))
+        points = dirs * radii * rng.uniform(0.85, ROCK_MAX_REACH_FACTOR, (len(dirs), 1))
         vertices = points[ConvexHull(points).vertices]
-        reach = float(np.linalg.norm(vertices[:, :2], axis=1).max())
-        yaw = float(rng.uniform(0, 2 * math.pi))
+        return radii, vertices, float(np.linalg.norm(vertices[:, :2], axis=1).max()), float(rng.uniform(0, 2 * math.pi))
+
+    def rock(xy: np.ndarray, radii: np.ndarray, vertices: np.ndarray, yaw: float) -> Rock:
+        c, s = math.cos(yaw), math.sin(yaw)
+        foot_x = xy[0] + c * vertices[:, 0] - s * vertices[:, 1]
+        foot_y = xy[1] + s * vertices[:, 0] + c * vertices[:, 1]
+        ground_min = float(np.min(height_at(foot_x, foot_y)))
+        z = min(float(height_at(*xy)), ground_min - 0.01 - float(vertices[:, 2].min()))
+        return Rock(center=np.array([xy[0], xy[1], z]), radii=radii, yaw=yaw, vertices=vertices)
+
+    rocks = []
+    for n, spec in enumerate(rc.placed):  # where the scenario says; the scenario keeps them off starts and the lander
+        radii, vertices, reach, yaw = shape(spec.diameter_m)
+        xy = np.asarray(spec.xy, float)
+        if np.any(np.abs(xy) > half - reach - 0.1):
+            raise TerrainError(f"terrain.rocks.placed.{n}: a {spec.diameter_m:g} m rock at {list(spec.xy)} reaches off the {cfg.size_m:g} m terrain")
+        rocks.append(rock(xy, radii, vertices, yaw))
+        placed_xy[n], placed_r[n] = xy, reach
+    for n, d in enumerate(diameters, start=k):
+        radii, vertices, reach, yaw = shape(d)
         limit = half - reach - 0.1
         if limit <= 0:
             raise TerrainError(f"rock diameter {d:.2f} m does not fit on a {cfg.size_m:g} m terrain")
@@ -357,16 +377,11 @@ def _place_rocks(height_at, cfg: TerrainConfig, rng: np.random.Generator,
                 break
         else:
             raise TerrainError(
-                f"placed only {n} of {rc.count} rocks: no room left outside the keep-clear discs "
+                f"placed only {n - k} of {rc.count} rocks: no room left outside the keep-clear discs "
                 f"(clearance_m={rc.clearance_m:g}); lower terrain.rocks.count or the clearance"
             )
         xy = cand[good[0]]
-        c, s = math.cos(yaw), math.sin(yaw)
-        foot_x = xy[0] + c * vertices[:, 0] - s * vertices[:, 1]
-        foot_y = xy[1] + s * vertices[:, 0] + c * vertices[:, 1]
-        ground_min = float(np.min(height_at(foot_x, foot_y)))
-        z = min(float(height_at(*xy)), ground_min - 0.01 - float(vertices[:, 2].min()))
-        rocks.append(Rock(center=np.array([xy[0], xy[1], z]), radii=radii, yaw=yaw, vertices=vertices))
+        rocks.append(rock(xy, radii, vertices, yaw))
         placed_xy[n], placed_r[n] = xy, reach
     return rocks
 
