@@ -86,6 +86,42 @@ def test_realtime_job_preempts_a_long_background_job():
     assert lane.utilization(5.01)[Device.CPU] == pytest.approx(1.0)
 
 
+def test_a_background_job_preempted_in_the_instant_it_gets_the_core_queues_again():
+    """A background job granted the only core and, before it resumes, preempted by a real-time
+    job submitted in the same instant (an IMU sample's strapdown beside a background
+    job): it runs after the real-time job instead of failing the run."""
+    env = simpy.Environment()
+    lane = make_lane(env, stages={"pairing_s": 0.3, "strapdown_s": 0.01})
+    done = []
+
+    def both():
+        yield env.timeout(1.0)
+        lane.submit("pairing", lambda: "goal", lambda r, t: done.append((r, t)), priority=Priority.BACKGROUND)
+        lane.submit("strapdown", lambda: "imu", lambda r, t: done.append((r, t)))
+
+    env.process(both())
+    env.run()
+    assert done == [("imu", pytest.approx(1.01)), ("goal", pytest.approx(1.31))]
+    # and preempted again when re-granted: a second real-time job in the instant the first ends
+    env = simpy.Environment()
+    lane = make_lane(env, stages={"pairing_s": 0.3, "strapdown_s": 0.01})
+    done = []
+
+    def imu1_done(r, t):
+        done.append((r, t))
+        lane.submit("strapdown", lambda: "imu2", lambda r2, t2: done.append((r2, t2)))
+
+    def three():
+        yield env.timeout(1.0)
+        lane.submit("pairing", lambda: "goal", lambda r, t: done.append((r, t)), priority=Priority.BACKGROUND)
+        lane.submit("strapdown", lambda: "imu1", imu1_done)
+
+    env.process(three())
+    env.run()
+    assert [r for r, _ in done] == ["imu1", "imu2", "goal"]
+    assert done[-1][1] == pytest.approx(1.32)
+
+
 def test_busy_counts_waiting_and_running_jobs_per_priority_until_their_results():
     env = simpy.Environment()
     lane = make_lane(env, max_queue=1, stages={"stereo_s": 1.0, "pairing_s": 1.0})

@@ -161,9 +161,20 @@ class Lane:
             return resource.request(priority=int(priority), preempt=priority == Priority.REALTIME)
         return resource.request(priority=int(priority))
 
+    def _acquire(self, resource, request, priority: Priority):
+        """Wait until ``request`` is granted and the job resumes; a job preempted in between
+        (granted, then taken by a real-time request in the same instant) queues again.
+        Returns the request that holds the device."""
+        while True:
+            try:
+                yield request
+                return request
+            except simpy.Interrupt:
+                request = self._request(resource, priority)
+
     def _run(self, resource, request, waits: bool, queue: _StageQueue, record: JobRecord, work, on_done, priority: Priority):
         try:
-            yield request
+            request = yield from self._acquire(resource, request, priority)
             queue.waiting -= waits
             if self.halted:
                 return
@@ -181,8 +192,7 @@ class Lane:
                     break
                 except simpy.Interrupt:  # preempted by a real-time job: queue for the rest
                     left -= self.env.now - start
-                    request = self._request(resource, priority)
-                    yield request
+                    request = yield from self._acquire(resource, self._request(resource, priority), priority)
             record.finished = self.env.now
             self.busy_s[record.device] += record.compute_s
             queue.done.append([record.submitted, record.started, record.finished, record.wall_s, record.compute_s])
