@@ -57,7 +57,6 @@ class PathFollower:
         self.params = params
         self.path: Path | None = None  # in the odometry frame
         self.plans = 0
-        self.failed_plans = 0  # the start was off the map (it never is while the map follows the robot)
         self.seconds = 0.0  # wall time spent planning
         self._next_plan = -np.inf
         self._goal: np.ndarray | None = None
@@ -84,7 +83,6 @@ class PathFollower:
         self.path = plan(grid, xy, goal)
         self._goal = goal
         self.plans += 1
-        self.failed_plans += self.path is None
         self.seconds += time.perf_counter() - t0
 
     def reset(self) -> None:

@@ -194,16 +194,6 @@ def _escape(grid: CostGrid, start: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def blocked(grid: CostGrid, path: Path) -> bool:
-    """Whether any cell of ``path`` after its first is blocked on ``grid`` (a map that
-    changed since the path was planned)."""
-    for xy in path.xy[1:]:
-        cell = grid.cell_of(xy)
-        if grid.inside(cell) and not np.isfinite(grid.factor[cell]):
-            return True
-    return False
-
-
 def lookahead(path: Path, xy, distance_m: float) -> np.ndarray:
     """The point of ``path`` ``distance_m`` beyond its point nearest to ``xy`` (pure
     pursuit's carrot); the path's end if it is nearer."""
