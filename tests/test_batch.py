@@ -13,7 +13,7 @@ import yaml
 from typer.testing import CliRunner
 
 from sim.batch import report
-from sim.batch.execute import execute, plan, read_index
+from sim.batch.execute import Outcome, execute, plan, read_index
 from sim.batch.spec import BatchError, check, load_batch, override
 
 runner = CliRunner()
@@ -262,6 +262,22 @@ def test_pool_batch_records_a_failing_run_summarises_and_resumes_without_rerunni
     assert "6 runs, 2 to do" in retry.text, retry.output
     after = {r["id"]: (r["started"], r["finished"]) for r in read_index(out)["runs"]}
     assert [i for i in after if after[i] != before[i]] == ["broken/seed1", "broken/seed2"]
+
+
+def test_resume_runs_again_a_completed_run_whose_metrics_are_gone(tmp_path):
+    """A fresh clone holds the index and the committed metrics.json files only: a completed
+    run without its metrics must run again rather than be reported empty."""
+    batch = load_batch(write_batch(tmp_path, seeds=[1, 2]))
+    out = tmp_path / "out"
+    index, todo = plan(batch, out)
+    for spec in todo:
+        index.start(spec)
+        index.finish(spec, Outcome("completed", wall_s=1.0))
+    kept, lost = todo
+    (out / kept.folder).mkdir(parents=True)
+    (out / kept.folder / "metrics.json").write_text("{}")
+    _, again = plan(batch, out, resume=True)
+    assert [s.id for s in again] == [lost.id]
 
 
 def test_a_run_past_the_timeout_is_killed_and_recorded(tmp_path):

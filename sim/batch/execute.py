@@ -8,7 +8,7 @@ The batch folder::
 
 ``index.json`` is rewritten after every run, so an interrupted batch loses nothing;
 ``resume`` skips every run the index already has an outcome for (and whose inputs did not
-change), ``retry_failed`` runs failed, crashed and timed-out ones again.
+change, and, if it completed, whose ``metrics.json`` is still there), ``retry_failed`` runs failed, crashed and timed-out ones again.
 
 Run statuses: ``completed``; ``failed`` (the simulation raised, or could not be set up;
 what it produced is kept and ``error`` says why); ``crashed`` (the worker process died);
@@ -138,7 +138,7 @@ class Index:
                 "git_dirty": None,
             }
             before = old.get(spec.id)
-            if before is not None and before.get("digest") == entry["digest"] and before.get("status") in FINAL:
+            if before is not None and before.get("digest") == entry["digest"] and before.get("status") in FINAL and _outcome_kept(out, before):
                 entry.update({k: before.get(k) for k in ("status", "error", "wall_s", "started", "finished", "git_commit", "git_dirty")})
             self.runs[spec.id] = entry
 
@@ -160,6 +160,12 @@ class Index:
     def interrupt(self, spec: RunSpec) -> None:
         self.runs[spec.id].update(status="pending", started=None)
         self.write()
+
+
+def _outcome_kept(out: Path, run: dict[str, Any]) -> bool:
+    """Whether a finished run's results are still there to report: a completed run whose
+    ``metrics.json`` is gone (a fresh clone keeps only the committed ones) runs again."""
+    return run.get("status") != "completed" or (out / run["folder"] / "metrics.json").is_file()
 
 
 # --------------------------------------------------------------------------- executors
