@@ -360,6 +360,8 @@ BASE_KINDS: dict[str, dict[str, Any]] = {
     "frame_switch": {"priority": 1, "delivery": "reliable"},
     "loop_closure": {"priority": 1, "delivery": "reliable"},
     "submap": {"priority": 3, "delivery": "reliable", "max_queued": 200},
+    # exploration goals (thesis 9.3): small, rare, and a robot keeps away from the goals it heard of
+    "goal": {"priority": 1, "delivery": "reliable"},
 }
 
 PRESETS: dict[Preset, dict[str, Any]] = {
@@ -434,7 +436,8 @@ class CommsConfig(StrictConfig):
     )
     kind_defaults: KindPolicy = Field(KindPolicy(), description="delivery policy of message kinds that kinds does not name")
     kinds: dict[str, KindOverride] = Field(
-        {}, description="per message kind, overrides of kind_defaults (built in: pose, detection, frame_switch, loop_closure, submap; thesis 3.3)"
+        {},
+        description="per message kind, overrides of kind_defaults (built in: pose, detection, frame_switch, loop_closure, submap, goal)",
     )
     outages: list[OutageConfig] = Field([], description="scheduled outages: named links down in [start_s, end_s)")
     random_outages: list[RandomOutageConfig] = Field([], description="outages at random times (seeded)")

@@ -47,6 +47,7 @@ from slam.graph import GraphParams
 from slam.health import HealthParams
 from slam.local_estimator import LocalEstimator
 from slam.matcher import MatcherParams
+from slam.navigation.exploration import ExplorationParams
 from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.submap import SubmapParams
@@ -415,6 +416,43 @@ class NavigationConfig(StrictModel):
     lookahead_m: PositiveFloat = Field(0.8, le=5, description="estimate: the controller steers at the path's point this far ahead")
 
 
+class ExplorationConfig(StrictModel):
+    """Frontier-based multi-robot exploration of a target region (thesis 9.3;
+    slam/navigation/exploration.py): each exploring robot drives to goals it chooses on its
+    own map, scans there, and tells the team its goals."""
+
+    region: list[XY] = Field(..., min_length=3, description="the target region: a polygon of [x, y] vertices (m, origin at the terrain centre)")
+    robots: list[str] | None = Field(
+        None, min_length=1, description=f"the robots that explore (default: every robot whose preset can: {_per_preset('explores')})"
+    )
+    cell_m: PositiveFloat = slam_field(SlamParam(ExplorationParams, "cell_m"), description="cells of the explored-area grid")
+    sensor_range_m: PositiveFloat = slam_field(
+        SlamParam(ExplorationParams, "sensor_range_m"), description="a goal's information gain counts the unexplored cells within this range of it"
+    )
+    goal_separation_m: NonNegFloat = slam_field(
+        SlamParam(ExplorationParams, "goal_separation_m"),
+        description="keep goals this far from the peers' current goals (thesis 9.3: 7 m, about twice the sensor range)",
+    )
+    distance_weight: NonNegFloat = slam_field(
+        SlamParam(ExplorationParams, "distance_weight"), description="a goal's utility is gain x exp(-distance_weight x distance) (1/m)"
+    )
+    coverage_target: float = slam_field(
+        SlamParam(ExplorationParams, "coverage_target"), gt=0, le=1, description="a robot stops exploring once it believes this fraction is explored"
+    )
+    min_gain_cells: int = slam_field(
+        SlamParam(ExplorationParams, "min_gain_cells"), ge=1, description="frontiers that would explore fewer cells are no goals"
+    )
+    min_goal_distance_m: NonNegFloat = slam_field(
+        SlamParam(ExplorationParams, "min_goal_distance_m"), description="no goal nearer than this to the robot"
+    )
+    initial_scan: bool = Field(True, description="scan where it stands before choosing its first goal")
+    scan_at_goal: bool = Field(True, description="scan 360 deg at every goal (route.scan_duration_s)")
+
+    def explorers(self, robots: list[RobotConfig]) -> list[str]:
+        """Names of the exploring robots."""
+        return self.robots if self.robots is not None else [r.name for r in robots if PRESETS[r.preset].explores]
+
+
 class RobotConfig(StrictModel):
     name: str = Field(..., pattern=NAME_PATTERN, description="unique robot name, also its network node ('lander' is taken)")
     preset: Literal["lru", "lru_wide", "ardea"] = Field(
@@ -480,6 +518,9 @@ class StageCosts(StrictModel):
     )
     messages_s: NonNegFloat = Field(1e-4, description="decoding a peer message and adding its factors")
     graph_s: NonNegFloat = Field(0.0017, description="one iSAM2 update (thesis 8.4: 1.7 ms mean)")
+    exploration_s: NonNegFloat = Field(
+        0.5, description="choosing an exploration goal on the robot's map (chosen; thesis 9.3 gives no figure)"
+    )
 
 
 class ComputeConfig(StrictModel):
@@ -1041,6 +1082,9 @@ class Scenario(StrictModel):
     comms: CommsConfig = Field(CommsConfig(), description="the network between robots, lander and ground station (docs/comms.md)")
     slam: SlamConfig = Field(SlamConfig(), description="the on-board estimation stack of every robot (thesis ch. 4-6)")
     realism: RealismConfig = Field(RealismConfig(), description="how far the simulated world departs from the ideal one (docs/realism.md)")
+    exploration: ExplorationConfig | None = Field(
+        None, description="autonomous frontier exploration of a target region by the team (thesis 9.3; docs/exploration.md); null: none"
+    )
     faults: list[FaultConfig] = Field(
         [],
         description="injected failures, each a typed entry (`type:` wrong_detection, wrong_match, dies, camera_dark, imu_stuck, "
@@ -1066,6 +1110,36 @@ class Scenario(StrictModel):
             for (x0, y0), (x1, y1), n in self._legs(cfg):
                 discs += [((x0 + (x1 - x0) * i / n, y0 + (y1 - y0) * i / n), clear) for i in range(n + 1)]
         return discs
+
+    def _check_exploration(self) -> None:
+        """Exploring robots exist, can explore, map, and the region lies on the terrain."""
+        cfg = self.exploration
+        if cfg is None:
+            return
+        names = {r.name: r for r in self.robots}
+        unknown = [n for n in cfg.robots or [] if n not in names]
+        if unknown:
+            raise ValueError(f"exploration.robots: no robot named {', '.join(map(repr, unknown))} (robots: {', '.join(names)})")
+        explorers = cfg.explorers(self.robots)
+        if not explorers:
+            raise ValueError(f"exploration: no robot can explore (presets that can: {_per_preset('explores')})")
+        for name in explorers:
+            if not PRESETS[names[name].preset].explores:
+                preset = names[name].preset
+                raise ValueError(f"exploration.robots: robot {name} (preset {preset}) cannot explore (presets that can: {_per_preset('explores')})")
+        if not (self.slam.enabled and self.slam.mapping.enabled and self.slam.graph.enabled):
+            raise ValueError(
+                "exploration chooses goals on the robots' own maps and shares them: "
+                "it needs slam.enabled, slam.mapping.enabled and slam.graph.enabled"
+            )
+        half = self.terrain.size_m / 2
+        for i, (x, y) in enumerate(cfg.region):
+            if abs(x) > half or abs(y) > half:
+                raise ValueError(f"exploration.region.{i}: {[x, y]} lies outside the {self.terrain.size_m:g} m terrain")
+        poly = np.asarray(cfg.region, float)
+        area = 0.5 * abs(float(np.dot(poly[:, 0], np.roll(poly[:, 1], 1)) - np.dot(poly[:, 1], np.roll(poly[:, 0], 1))))
+        if area < cfg.cell_m**2:
+            raise ValueError(f"exploration.region: its area {area:.3g} m^2 is smaller than one {cfg.cell_m:g} m cell")
 
     def _legs(self, robot: RobotConfig) -> list[tuple[XY, XY, int]]:
         """The straight legs of a robot's route, each with the number of steps of at most
@@ -1179,6 +1253,7 @@ class Scenario(StrictModel):
                     raise ValueError(f"terrain.rocks.placed.{n}: the rock at {list(rock.xy)} lies on robot {robot.name}'s start (keep {keep:.2f} m)")
             if lander is not None and math.hypot(rock.xy[0] - lander.xy[0], rock.xy[1] - lander.xy[1]) < LANDER_RADIUS + rock.diameter_m / 2:
                 raise ValueError(f"terrain.rocks.placed.{n}: the rock at {list(rock.xy)} lies on the lander at {list(lander.xy)}")
+        self._check_exploration()
         samples = self.duration_s / self.comms.stats_interval_s
         if samples > MAX_LINK_SAMPLES:
             raise ValueError(

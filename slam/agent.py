@@ -10,7 +10,8 @@ produces something for the team returns :class:`Outgoing` messages of real bytes
 - its pose estimates, periodically and in answer to a detection of itself;
 - each frame switch ``w`` and, once finished, each submap, once to every robot;
 - its robot detections ``d`` and landmark observations ``o``, with its own pose at the
-  detection time from its :class:`~slam.pose_buffer.PoseBuffer`.
+  detection time from its :class:`~slam.pose_buffer.PoseBuffer`;
+- when it explores, each new exploration goal (thesis 9.3), which its peers keep away from.
 
 Every robot applies every message, its own included, to its own graph, so all robots
 that received the same messages hold the same factors (delayed or reordered messages
@@ -47,6 +48,7 @@ from slam.messages import (
     DetectionMessage,
     Envelope,
     FrameSwitchMessage,
+    GoalMessage,
     LoopClosureMessage,
     MessageException,
     PoseEstimate,
@@ -64,7 +66,8 @@ KIND_DETECTION = "detection"
 KIND_FRAME_SWITCH = "frame_switch"
 KIND_SUBMAP = "submap"
 KIND_LOOP_CLOSURE = "loop_closure"
-MESSAGE_KINDS = (KIND_POSE, KIND_DETECTION, KIND_FRAME_SWITCH, KIND_SUBMAP, KIND_LOOP_CLOSURE)
+KIND_GOAL = "goal"
+MESSAGE_KINDS = (KIND_POSE, KIND_DETECTION, KIND_FRAME_SWITCH, KIND_SUBMAP, KIND_LOOP_CLOSURE, KIND_GOAL)
 
 
 @dataclass(frozen=True)
@@ -202,6 +205,7 @@ class Agent:
         self.detections: list[DetectionRecord] = []
         self.peer_submaps: dict[tuple[str, int], Submap] = {}
         self.peer_pose: dict[str, PoseEstimate] = {}  # latest periodic estimate of each peer
+        self.peer_goals: dict[str, GoalMessage] = {}  # latest exploration goal of each peer
         self.peer_switches: dict[str, dict[int, np.ndarray]] = defaultdict(dict)  # robot -> index_from -> T (own too)
         self.marginals: dict[tuple[str, int], np.ndarray] = {}
         self.dirty = False  # factors arrived since the last optimisation
@@ -379,6 +383,20 @@ class Agent:
         self.dirty = True
         return []
 
+    def announce_goal(self, t: float, xy, finished: bool = False) -> list[Outgoing]:
+        """This robot's new exploration goal (or the end of its exploration) for the team (thesis 9.3)."""
+        return [self._outgoing(KIND_GOAL, GoalMessage(self.name, t, (float(xy[0]), float(xy[1])), finished))]
+
+    def _on_goal(self, body: GoalMessage) -> list[Outgoing]:
+        latest = self.peer_goals.get(body.robot)
+        if body.robot != self.name and (latest is None or body.t >= latest.t):
+            self.peer_goals[body.robot] = body
+        return []
+
+    def current_peer_goals(self) -> list[np.ndarray]:
+        """The peers' exploration goals they still pursue (mission frame)."""
+        return [np.array(g.xy) for g in self.peer_goals.values() if not g.finished]
+
     def _on_detection(self, body: DetectionMessage) -> list[Outgoing]:
         """A detection d or landmark observation o with the detector's pose; a detection of this robot
         is answered with its own pose at that time from its buffer (thesis 4.2.2)."""
@@ -404,6 +422,7 @@ class Agent:
         SubmapMessage: _on_submap,
         LoopClosureMessage: _on_loop_closure,
         DetectionMessage: _on_detection,
+        GoalMessage: _on_goal,
     }
 
     def _register(self, pose: PoseEstimate) -> None:

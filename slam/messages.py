@@ -14,6 +14,8 @@ receiver applies each exactly once whatever the network does. The types:
   ``o``, with the detecting robot's own pose estimate at the detection time.
 - :class:`SubmapMessage`: a finished submap (thesis 5.2.1), sent once to each robot.
 - :class:`LoopClosureMessage`: a submap match ``c`` (6.1.2) with its covariance.
+- :class:`GoalMessage`: a robot's current exploration goal (thesis 9.3), or that it
+  finished exploring.
 
 The thesis's robots also announce the pairs their matchers take up (3.3); here each pair
 has one owner that matches it (:func:`slam.team_matcher.pair_owner`), so there is
@@ -52,6 +54,7 @@ class MessageType(IntEnum):
     DETECTION = 3
     SUBMAP = 4
     LOOP_CLOSURE = 6  # 5 was a match attempt
+    GOAL = 7
 
 
 @dataclass(frozen=True)
@@ -119,7 +122,19 @@ class LoopClosureMessage:
     cov: np.ndarray
 
 
-Body = PoseEstimate | FrameSwitchMessage | DetectionMessage | SubmapMessage | LoopClosureMessage
+@dataclass(frozen=True)
+class GoalMessage:
+    """``robot``'s exploration goal ``xy`` chosen at ``t``, in the mission frame as it
+    believes it (thesis 9.3: "each robot communicates each new exploration goal to all other
+    robots"); ``finished``: it explores no more (``xy`` is its last position)."""
+
+    robot: str
+    t: float
+    xy: tuple[float, float]
+    finished: bool = False
+
+
+Body = PoseEstimate | FrameSwitchMessage | DetectionMessage | SubmapMessage | LoopClosureMessage | GoalMessage
 
 
 @dataclass(frozen=True)
@@ -272,6 +287,13 @@ def encode(origin: str, seq: int, body: Body) -> bytes:
             w.i32(frame)
         w.pose(body.T_a_b)
         w.cov(body.cov)
+    elif isinstance(body, GoalMessage):
+        kind = MessageType.GOAL
+        w.text(body.robot)
+        w.f64(body.t)
+        w.f64(body.xy[0])
+        w.f64(body.xy[1])
+        w.u8(int(body.finished))
     else:
         raise MessageException(f"cannot encode {type(body).__name__}")
     head = _Writer()
@@ -306,6 +328,9 @@ def decode(data: bytes) -> Envelope:
     elif kind == MessageType.LOOP_CLOSURE:
         a, ia, fa, b, ib, fb = r.text(), r.i32(), r.i32(), r.text(), r.i32(), r.i32()
         body = LoopClosureMessage(a, ia, fa, b, ib, fb, r.pose(), r.cov())
+    elif kind == MessageType.GOAL:
+        robot, t, x, y, finished = r.text(), r.f64(), r.f64(), r.f64(), r.u8()
+        body = GoalMessage(robot, t, (x, y), bool(finished))
     else:
         raise MessageException(f"unknown message type {kind}")
     if r.pos != len(data):

@@ -8,6 +8,7 @@ from slam.lie import se3, so3_exp
 from slam.messages import (
     DetectionMessage,
     FrameSwitchMessage,
+    GoalMessage,
     LoopClosureMessage,
     MessageException,
     PoseEstimate,
@@ -49,6 +50,8 @@ def test_every_message_type_round_trips_exactly():
         DetectionMessage(pose, _pose(rng), _cov(rng), landmark=0, tag_id=0),
         SubmapMessage("lru2", 7, bytes(range(256)) * 3),
         LoopClosureMessage("lru1", 3, 4, "lru2", 11, 12, _pose(rng), _cov(rng)),
+        GoalMessage("lru2", 31.5, (4.25, -7.5)),
+        GoalMessage("lru1", 300.0, (0.5, 1.0), finished=True),
     ]
     for seq, body in enumerate(bodies, start=1):
         env = decode(encode("lru1", seq, body))

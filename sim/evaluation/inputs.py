@@ -6,8 +6,9 @@ Each section of ``metrics.json`` takes its own input, next to :class:`TeamTruth`
 simulator's ground truth: :class:`FilterInput` (``robots.<name>.filter``,
 :mod:`sim.evaluation.results_folder`), :class:`SlamInput` (``robots.<name>.slam``,
 :mod:`sim.evaluation.online_slam`), :class:`MapInput` (``robots.<name>.map``,
-:mod:`sim.evaluation.maps`) and :class:`ClosureInput` (``loop_closures``,
-:mod:`sim.evaluation.loop_closures`). The results folder reads each input inside its
+:mod:`sim.evaluation.maps`), :class:`ClosureInput` (``loop_closures``,
+:mod:`sim.evaluation.loop_closures`) and :class:`ExplorerInput` (``exploration``,
+:mod:`sim.evaluation.exploration`). The results folder reads each input inside its
 section's guard, so that a failure to read costs that section only.
 """
 
@@ -28,6 +29,7 @@ if TYPE_CHECKING:
     from sim.scenario import MappingConfig
     from slam.agent import AgentStats, DetectionRecord
     from slam.graph import MultiRobotGraph
+    from slam.navigation.exploration import Goal
     from slam.obstacles import ObstacleParams, RollingObstacleMap
     from slam.submap import Submap
     from slam.team_matcher import TeamMatcher
@@ -113,6 +115,40 @@ class ClosureInput:
     switch_times: dict[int, float]  # the later local frames: index -> time of the switch
     matcher: TeamMatcher | None
     detections: list[DetectionRecord]
+
+
+@dataclass(frozen=True, eq=False)
+class ExplorerInput:
+    """An exploring robot (thesis 9.3): its own submaps (finished, and the active one) with
+    the times of its local frames, whose true poses are their origins' truth; each answer of
+    its explorer with its time; its route's goals."""
+
+    start_t: float | None
+    switch_times: dict[int, float]
+    submaps: list[Submap]
+    goals: list[tuple[float, Goal]]
+    waypoints: list  # sim.robots.route.WaypointRecord, the scenario's waypoints first
+    scripted: int  # how many of them the scenario gave
+
+
+def explorer_inputs(run: Run) -> dict[str, ExplorerInput]:
+    """Every exploring robot."""
+    out = {}
+    for name, runtime in run.robots.items():
+        onboard = runtime.onboard
+        if onboard is None or onboard.explorer is None:
+            continue
+        builder = onboard.mapper.builder
+        active = [builder.current()] if builder.images else []
+        out[name] = ExplorerInput(
+            start_t=_start_t(onboard),
+            switch_times=_switch_times(onboard),
+            submaps=list(onboard.mapper.submaps) + active,
+            goals=list(onboard.goals),
+            waypoints=list(runtime.robot.waypoints),
+            scripted=len(runtime.robot.cfg.route.waypoints),
+        )
+    return out
 
 
 def _stack(rows: list[np.ndarray], *shape: int) -> np.ndarray:

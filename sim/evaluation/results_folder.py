@@ -30,6 +30,8 @@
     comms_links.csv             per link: wire bytes, retransmissions, up fraction, queue occupancy
     routes.csv                  every waypoint of every robot with its outcome
     topdown.png                 terrain, rocks, lander, trajectories and waypoint outcomes
+    exploration.png             with ``exploration``: coverage of the target region over time, explored
+                                cells by robot (see sim.evaluation.exploration)
     maps/, map_topdown.png      each robot's global map (<robot>.ply points, <robot>.voxels.npz voxel grid,
                                 <robot>.occupied.ply) and its top-down view (see sim.evaluation.maps)
     recording.rrd               rerun recording (see sim.run.recording)
@@ -59,7 +61,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import LightSource
 
-from sim.evaluation import inputs, loop_closures, maps, online_slam, trajectory
+from sim.evaluation import exploration, inputs, loop_closures, maps, online_slam, trajectory
 from sim.evaluation.navigation import navigation_metrics
 from sim.evaluation.trajectory import ErrorOverTime
 from sim.run.faults import fault_metrics
@@ -97,6 +99,13 @@ def write(run: Run, out: Path, error: str | None = None, recorder=None) -> dict[
         "comms": comms,
         "loop_closures": closures,
     }
+    explore = run.scenario.exploration
+    if explore is not None:
+        metrics["exploration"], explored = _guarded(
+            out, "exploration evaluation", lambda: exploration.exploration_section(explore.region, explore.cell_m, inputs.explorer_inputs(run), truth)
+        )
+        if explored is not None and run.scenario.output.topdown_png:
+            exploration.plot_exploration(explored, truth, out / "exploration.png")
     if run.scenario.output.topdown_png:
         _write_plots(run, out, robots, truth)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json_default))
@@ -518,6 +527,12 @@ def summary_lines(metrics: dict[str, Any]) -> list[str]:
             + (f"; {stereo} (2-6 m)" if stereo else "")
             + _filter_summary(m.get("filter"))
             + _slam_summary(m.get("slam"))
+        )
+    explored = metrics.get("exploration")
+    if explored and "coverage" in explored:
+        lines.append(
+            f"exploration: {100 * explored['coverage']:.0f} % of the {explored['region_m2']:.0f} m^2 target region explored "
+            f"({explored['explored_m2']:.0f} m^2, {explored['distance_m']:.0f} m driven)"
         )
     return lines
 

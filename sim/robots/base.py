@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
-from sim.robots.path_following import OwnEstimate, PathFollower
+from sim.robots.path_following import GoalSource, OwnEstimate, PathFollower
 from sim.robots.route import RouteTracker, WaypointRecord
 from sim.world.camera_rig import StereoRig
 from sim.world.markers import MarkerSpec, add_marker
@@ -131,6 +131,9 @@ class Robot(ABC):
     #: Its guidance can steer by the robot's own estimate (``navigation.pose_source: estimate``,
     #: sim/robots/path_following.py).
     navigates_on_estimate: ClassVar[bool] = False
+    #: It can explore a region on its own goals (the scenario's ``exploration``, thesis 9.3): its
+    #: controller asks :attr:`goal_source` for a goal whenever its route is done.
+    explores: ClassVar[bool] = False
     #: Its cameras sit on a pan-tilt head whose encoders give ``T_body_cam``: pan about the
     #: body's z axis, tilt about the cameras' x axis (their encoder offsets are calibration
     #: errors, sim/world/calibration_errors.py).
@@ -171,6 +174,8 @@ class Robot(ABC):
         self.own_estimate: OwnEstimate | None = None
         #: Its path planner and follower, for presets that plan on their own map (set when bound).
         self.follower: PathFollower | None = None
+        #: Where an exploring robot's next goals come from once its route is done (set by the run; ``explores``).
+        self.goal_source: GoalSource | None = None
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._attached = False

@@ -35,6 +35,8 @@ its rolling obstacle map (sim/robots/path_following.py), obstacles grown by
 ``scan`` the rover stops and pans its head a full turn (-180 -> +180 deg) in
 ``scan_duration_s`` (plus slewing to and from the start), its head tilted by
 ``route.scan_tilt_deg`` if set (e.g. up towards a lander's tag or another rover's mast).
+An exploring rover (the scenario's ``exploration``) asks its goal source for the next goal
+whenever its route is done, and stands (phase "wait") until one is chosen.
 While driving, the head can sweep its pan sinusoidally, ``route.head_sweep_deg`` to each
 side over ``route.head_sweep_period_s`` (the preset's defaults: none), so that the views
 along a leg cover more than the 50 deg strip ahead and see rocks from several sides
@@ -112,6 +114,7 @@ class LRU(Robot):
     pan_tilt_head = True
     antenna_height_m = 1.6  # on the mast
     navigates_on_estimate = True
+    explores = True
     ground_contact_geoms = tuple(f"wheel_{w}" for w in WHEELS)
     body_radius_m = math.hypot(WHEEL_X_M, WHEEL_Y_M) + WHEEL_RADIUS_M  # wheel corners: 0.64 m
 
@@ -262,6 +265,13 @@ class LRU(Robot):
         return self.phase in ("drive", "scan") and not self.tipped_over
 
     def _begin_next(self, t: float, xy: np.ndarray) -> None:
+        source = self.goal_source
+        if self.route.done and source is not None and not source.finished:
+            goal = source.next_goal(t)
+            if goal is None:
+                self.phase = "wait"  # for its next exploration goal
+                return
+            self.route.add(goal)
         if self.route.done:
             self.phase = "done"
         else:
@@ -284,7 +294,7 @@ class LRU(Robot):
         tilt = max(abs(roll), abs(pitch))
         route = self.route
         v = w = 0.0
-        if self.phase == "idle":
+        if self.phase in ("idle", "wait"):
             self._begin_next(t, xy)
         if self.phase == "drive":
             if route.distance(xy) < route.cfg.tolerance_m:
@@ -298,6 +308,9 @@ class LRU(Robot):
             else:
                 to_goal = route.target_xy - xy
                 reason = route.check(t, xy, wrap_angle(math.atan2(to_goal[1], to_goal[0]) - yaw))
+                exploring = self.goal_source is not None and route.current >= len(self.cfg.route.waypoints)
+                if reason is None and exploring and self.goal_source.yields(route.target_xy):
+                    reason = "withdrawn"
                 if reason is not None:
                     route.fail(t, true_xy, reason)
                     self._begin_next(t, xy)

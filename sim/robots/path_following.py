@@ -26,7 +26,7 @@ from slam.navigation.planner import Path, PlannerParams, cost_grid, plan
 from slam.navigation.planner import lookahead as path_lookahead
 
 if TYPE_CHECKING:
-    from sim.scenario import NavigationConfig
+    from sim.scenario import NavigationConfig, WaypointConfig
     from slam.obstacles import RollingObstacleMap
 
 
@@ -42,6 +42,22 @@ class OwnEstimate(Protocol):
 
     def world_from_odometry(self) -> np.ndarray:
         """``T_world_odom``: the odometry frame in the mission frame, as the robot believes."""
+
+
+class GoalSource(Protocol):
+    """Where an exploring robot's goals come from (sim/run/onboard.py, thesis 9.3)."""
+
+    @property
+    def finished(self) -> bool:
+        """The robot explores no more."""
+
+    def next_goal(self, t: float) -> WaypointConfig | None:
+        """The next goal (mission frame) as a waypoint to add to the route; None while it is
+        being chosen."""
+
+    def yields(self, goal_xy) -> bool:
+        """Whether the robot should give up its goal ``goal_xy`` for a peer's (it then fails
+        as "withdrawn" and the robot asks for another)."""
 
 
 def _apply(T: np.ndarray, xy) -> np.ndarray:

@@ -3,7 +3,9 @@
 A waypoint is never skipped silently: it ends "reached" or "failed" with a reason
 ("stuck": no progress towards it for ``stuck_timeout_s``; "timeout": not reached
 within 3 x leg length / speed + 30 s; "tipped_over": the robot tipped over before
-reaching it, which also ends the route).
+reaching it, which also ends the route). An exploring robot's goals (thesis 9.3) are
+added to the route as it chooses them (:meth:`RouteTracker.add`), and recorded alike;
+one it gives up for a peer's goal fails as "withdrawn".
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ class WaypointRecord:
     xy: tuple[float, float]
     status: str = "pending"  # "pending" | "reached" | "failed"
     reached_t: float | None = None  # time of arrival ("reached" only)
-    reason: str | None = None  # failure reason: "stuck", "tipped_over", "timeout"
+    reason: str | None = None  # failure reason: "stuck", "tipped_over", "timeout", "withdrawn", "dead"
     failed_t: float | None = None  # time of giving up ("failed" only)
     final_xy: tuple[float, float] | None = None  # true robot xy at arrival / when giving up
 
@@ -37,7 +39,8 @@ class WaypointRecord:
 class RouteTracker:
     def __init__(self, route: RouteConfig):
         self.cfg = route
-        self.records = [WaypointRecord(i, (float(w.xy[0]), float(w.xy[1]))) for i, w in enumerate(route.waypoints)]
+        self.waypoints = list(route.waypoints)  # the scenario's, then any added
+        self.records = [WaypointRecord(i, (float(w.xy[0]), float(w.xy[1]))) for i, w in enumerate(self.waypoints)]
         self.current = 0
         self.leg_start_t = 0.0
         self.leg_start_xy = np.zeros(2)
@@ -52,11 +55,16 @@ class RouteTracker:
 
     @property
     def target(self) -> WaypointConfig:
-        return self.cfg.waypoints[self.current]
+        return self.waypoints[self.current]
 
     @property
     def target_xy(self) -> np.ndarray:
         return np.asarray(self.records[self.current].xy, float)
+
+    def add(self, waypoint: WaypointConfig) -> None:
+        """Append a waypoint (an exploration goal) to the route."""
+        self.waypoints.append(waypoint)
+        self.records.append(WaypointRecord(len(self.records), (float(waypoint.xy[0]), float(waypoint.xy[1]))))
 
     def begin_leg(self, t: float, xy) -> None:
         """Start (or restart the clocks of) the leg to the current waypoint."""

@@ -10,8 +10,10 @@ when a robot would have them. Real code runs in every job; only its duration is
 modelled. The robot's :class:`slam.agent.Agent` holds estimator, mapping and graph:
 marker detection runs on every camera image (``detection``), peer messages are
 decoded as ``messages`` jobs and the graph is optimised as a background ``graph`` job
-whenever factors arrived; what the agent sends goes onto the network. What the filter
-and the graph believe is logged next to ground truth for evaluation.
+whenever factors arrived; what the agent sends goes onto the network. An exploring robot
+chooses each goal on its maps in an ``exploration`` job (slam/navigation/explorer.py)
+and announces it to the team. What the filter and the graph believe is logged next to
+ground truth for evaluation.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from sim.robots.base import Robot
 from sim.run.faults import measurement_faults
 from sim.run.lanes import Lane, Priority
 from sim.run.series import Rows
-from sim.scenario import MappingConfig, Scenario, SlamConfig, slam_kwargs
+from sim.scenario import ExplorationConfig, MappingConfig, Scenario, SlamConfig, WaypointConfig, slam_kwargs
 from sim.seeding import RandomStreams
 from sim.tools.marker_lut import load_tables
 from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
@@ -40,6 +42,8 @@ from slam.lie import rot_z, se3, se3_inv
 from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
 from slam.matcher import MatcherParams
+from slam.navigation.exploration import ExplorationParams, Goal
+from slam.navigation.explorer import Explorer
 from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.stereo import StereoCalibration, depth_error
@@ -188,6 +192,13 @@ class OnboardStack:
         self.slam_log = SlamLog()
         self.on_vo_result = None  # optional callback(result), e.g. the recording
         self.on_mapped = None  # optional callback(frame_id, depth, classification), e.g. the evaluation
+        # its map frame is the gravity-aligned frame of its pose at the filter's start, which it believes
+        # to be the scenario's start (where it was deployed; height plays no part)
+        start = robot.cfg.start
+        self._T_world_map = se3(rot_z(math.radians(start.yaw_deg)), [start.xy[0], start.xy[1], 0.0])
+        self._map_odom: tuple[tuple[int, int], np.ndarray] | None = None
+        self.explorer: Explorer | None = None
+        self.goals: list[tuple[float, Goal]] = []  # every exploration answer, with its time
 
     # ------------------------------------------------------------------ the team
 
@@ -353,12 +364,7 @@ class OnboardStack:
     # ------------------------------------------------------------------ guidance (sim/robots/path_following.py)
 
     def guide(self) -> None:
-        """Let the robot steer by this stack's estimate (``navigation.pose_source: estimate``).
-        Its map frame is the gravity-aligned frame of its pose at the filter's start, which it
-        believes to be the scenario's ``start`` (where it was deployed; height plays no part)."""
-        start = self.robot.cfg.start
-        self._T_world_map = se3(rot_z(math.radians(start.yaw_deg)), [start.xy[0], start.xy[1], 0.0])
-        self._map_odom: tuple[tuple[int, int], np.ndarray] | None = None
+        """Let the robot steer by this stack's estimate (``navigation.pose_source: estimate``)."""
         self.robot.own_estimate = self
 
     @property
@@ -385,6 +391,85 @@ class OnboardStack:
             T_map_odom = np.eye(4) if S is None else S @ se3_inv(est.T_first_current)
             self._map_odom = (key, self._T_world_map @ T_map_odom)
         return self._map_odom[1]
+
+    # ------------------------------------------------------------------ exploration (slam/navigation/explorer.py)
+
+    def explore(self, cfg: ExplorationConfig) -> None:
+        """Let the robot explore ``cfg.region``: it asks this stack for goals (:meth:`next_goal`)."""
+        self.explorer = Explorer(cfg.region, ExplorationParams(**slam_kwargs(ExplorationParams, cfg)))
+        self._exploration = cfg
+        self._goal_ready: Goal | None = None
+        self._goal_queued = False
+        self._first_goal = True
+        self._finished = False
+        self._known_goals: set[tuple[str, float]] = set()  # the peers' goals it knew when it chose its latest
+        self._announced_t = -math.inf
+        self.robot.goal_source = self
+
+    @property
+    def finished(self) -> bool:
+        return self._finished
+
+    def next_goal(self, t: float) -> WaypointConfig | None:
+        """The next goal once an ``exploration`` job has chosen it (one is queued if none is);
+        the first, with ``initial_scan``, a scan where the robot stands."""
+        cfg = self._exploration
+        if self._first_goal and cfg.initial_scan:
+            T = self._believed_pose()
+            if T is None:
+                return None
+            self._first_goal = False
+            return WaypointConfig(xy=(float(T[0, 3]), float(T[1, 3])), scan=True)
+        goal, self._goal_ready = self._goal_ready, None
+        if goal is not None:
+            return WaypointConfig(xy=(float(goal.xy[0]), float(goal.xy[1])), scan=cfg.scan_at_goal)
+        if not self._goal_queued and not self._finished:
+            job = self.lane.submit("exploration", work=self._choose_goal, on_done=self._goal_chosen, priority=Priority.BACKGROUND)
+            self._goal_queued = job is not None
+        return None
+
+    def yields(self, goal_xy) -> bool:
+        """Whether the robot gives up its current goal for a peer's it did not know of when it
+        chose its own, announced first (ties by name) and within ``goal_separation_m``: two
+        robots that chose at the same moment would otherwise drive to the same place."""
+        separation = self.explorer.params.goal_separation_m
+        mine = (self._announced_t, self.robot.name)
+        for g in self.agent.peer_goals.values():
+            if g.finished or (g.robot, g.t) in self._known_goals or (g.t, g.robot) > mine:
+                continue
+            if math.hypot(g.xy[0] - goal_xy[0], g.xy[1] - goal_xy[1]) < separation:
+                return True
+        return False
+
+    def _believed_pose(self) -> np.ndarray | None:
+        """``T_world_body`` as the robot believes (its online SLAM pose in the mission frame)."""
+        T_odom_body = self.odometry_pose()
+        return None if T_odom_body is None else self.world_from_odometry() @ T_odom_body
+
+    def _choose_goal(self) -> tuple[Goal | None, list[Outgoing]]:
+        T = self._believed_pose()
+        if T is None:
+            return None, []
+        rolling = self.mapper.rolling
+        explored, obstacles = self.explorer.grids(
+            self.agent.placed_submaps(), self._T_world_map, (rolling.traversability, rolling.origin, rolling.resolution_m), self.world_from_odometry()
+        )
+        first = len(self.robot.cfg.route.waypoints)
+        visited = [np.array(r.xy) for r in self.robot.route.records[first:]]
+        self._known_goals = {(g.robot, g.t) for g in self.agent.peer_goals.values()}
+        goal = self.explorer.next_goal(explored, obstacles, T[:2, 3], self.agent.current_peer_goals(), visited)
+        xy = T[:2, 3] if goal.xy is None else goal.xy
+        self._announced_t = self.lane.env.now
+        return goal, self.agent.announce_goal(self._announced_t, xy, finished=goal.finished)
+
+    def _goal_chosen(self, result: tuple[Goal | None, list[Outgoing]], t: float) -> None:
+        self._goal_queued = False
+        goal, out = result
+        if goal is not None:
+            self.goals.append((t, goal))
+            self._finished = goal.finished
+            self._goal_ready = None if goal.finished else goal
+        self._send(out)
 
     # ------------------------------------------------------------------ logging
 

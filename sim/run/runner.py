@@ -300,6 +300,9 @@ class Run:
             onboard = OnboardStack(self.scenario, robot, lane, IMU_PRESETS[preset], gravity, self.team_markers, self.streams)
             if cfg.navigation.pose_source == "estimate":
                 onboard.guide()
+            exploration = self.scenario.exploration
+            if exploration is not None and robot.name in exploration.explorers(self.scenario.robots):
+                onboard.explore(exploration)
             if self.recorder is not None:
                 every = self.scenario.output.recording_image_every
                 onboard.on_vo_result = lambda result, r=robot, o=onboard, n=every: (
