@@ -156,6 +156,14 @@ def se3(R: np.ndarray, p) -> np.ndarray:
     return T
 
 
+def apply_planar(T: np.ndarray, xy) -> np.ndarray:
+    """The horizontal part of a gravity-aligned pose ``T`` (a rotation about z only) applied
+    to ground points ``xy``, (2,) or (n, 2): what a 2D map or planner in one such frame
+    needs of another (heights play no part in x and y)."""
+    xy = np.asarray(xy, float)
+    return xy[..., :2] @ T[:2, :2].T + T[:2, 3]
+
+
 def se3_inv(T: np.ndarray) -> np.ndarray:
     """Inverse of a 4x4 rigid transform."""
     Ti = np.eye(4)

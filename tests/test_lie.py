@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from slam.lie import (
     adjoint,
+    apply_planar,
     pose_error,
     quat_to_rot,
     roll_pitch,
@@ -125,3 +126,13 @@ def test_rotation_angle_is_the_angle_of_the_axis_angle_vector():
         angle = rng.uniform(0.0, math.pi - 1e-6)
         assert rotation_angle(Rotation.from_rotvec(angle * axis).as_matrix()) == pytest.approx(angle, abs=1e-9)
     assert rotation_angle(np.eye(3)) == 0.0
+
+
+def test_apply_planar_is_the_full_transform_in_x_and_y_for_a_gravity_aligned_pose():
+    rng = np.random.default_rng(4)
+    T = se3(rot_z(0.7), [1.0, -2.0, 0.5])
+    points = rng.normal(size=(20, 3))
+    full = points @ T[:3, :3].T + T[:3, 3]
+    np.testing.assert_allclose(apply_planar(T, points), full[:, :2], atol=1e-12)
+    np.testing.assert_allclose(apply_planar(T, points[0, :2]), full[0, :2], atol=1e-12)
+    np.testing.assert_allclose(apply_planar(se3_inv(T), apply_planar(T, points[:, :2])), points[:, :2], atol=1e-12)

@@ -32,6 +32,7 @@ import numpy as np
 
 from sim.evaluation import trajectory
 from sim.evaluation.inputs import ExplorerInput, TeamTruth
+from slam.lie import apply_planar
 from slam.navigation.exploration import RegionGrid
 
 
@@ -43,8 +44,7 @@ def _placed_cells(robot: ExplorerInput, grid: RegionGrid, truth: trajectory.Traj
         T = origins.get(submap.frame_index)
         if T is None or len(submap.points) == 0:
             continue
-        xy = np.asarray(submap.points, float) @ T[:3, :3].T[:, :2] + T[:2, 3]
-        out.append((submap.t_end, grid.mark(xy)))
+        out.append((submap.t_end, grid.mark(apply_planar(T, submap.points))))
     return out
 
 

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from slam.lie import se3_inv
+from slam.lie import apply_planar, se3_inv
 from slam.navigation.planner import Path, PlannerParams, cost_grid, plan
 from slam.navigation.planner import lookahead as path_lookahead
 
@@ -60,11 +60,6 @@ class GoalSource(Protocol):
         as "withdrawn" and the robot asks for another)."""
 
 
-def _apply(T: np.ndarray, xy) -> np.ndarray:
-    """``T`` applied to a ground point ``xy`` (frames are gravity-aligned: z plays no part)."""
-    return T[:2, :2] @ np.asarray(xy, float)[:2] + T[:2, 3]
-
-
 class PathFollower:
     """Plans towards a goal in the mission frame and hands the controller the point to steer at."""
 
@@ -80,7 +75,7 @@ class PathFollower:
     def steer_point(self, t: float, estimate: OwnEstimate, T_odom_body: np.ndarray, goal_world) -> np.ndarray:
         """The point (mission frame, as believed) to steer at now on the way to ``goal_world``."""
         T_world_odom = estimate.world_from_odometry()
-        goal = _apply(se3_inv(T_world_odom), goal_world)
+        goal = apply_planar(se3_inv(T_world_odom), goal_world)
         xy = T_odom_body[:2, 3]
         moved_goal = self._goal is None or np.linalg.norm(goal - self._goal) > self.params.cell_m
         if t >= self._next_plan or moved_goal:
@@ -91,7 +86,7 @@ class PathFollower:
         carrot = path_lookahead(self.path, xy, self.cfg.lookahead_m)
         if self.path.reaches_goal and np.linalg.norm(carrot - self.path.xy[-1]) < 1e-9:
             carrot = goal  # the last stretch: to the goal itself, not its cell centre
-        return _apply(T_world_odom, carrot)
+        return apply_planar(T_world_odom, carrot)
 
     def _replan(self, rolling: RollingObstacleMap, xy: np.ndarray, goal: np.ndarray) -> None:
         t0 = time.perf_counter()

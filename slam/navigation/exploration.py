@@ -111,18 +111,16 @@ class RegionGrid:
 
 @dataclass(frozen=True)
 class Goal:
-    """The explorer's answer: a goal ``xy`` (mission frame) with its ``gain`` (cells) and
-    ``utility`` (``reason`` "approach" for the way into a region not seen yet), or
-    ``finished`` (``reason``: "coverage" or "no frontier"); ``coverage``: the region's
-    explored fraction as the robot believes it; ``frontiers``: frontier cells."""
+    """The explorer's answer: a goal ``xy`` (mission frame) with its ``gain`` (cells;
+    ``reason`` "approach" for the way into a region not seen yet), or ``finished``
+    (``reason``: "coverage" or "no frontier"); ``coverage``: the region's explored fraction
+    as the robot believes it."""
 
     xy: np.ndarray | None
     coverage: float
     gain: int = 0
-    utility: float = 0.0
     finished: bool = False
     reason: str = ""
-    frontiers: int = 0
 
 
 def frontiers(explored: np.ndarray, inside: np.ndarray, blocked: np.ndarray) -> np.ndarray:
@@ -176,7 +174,7 @@ def choose_goal(
             i, j = np.unravel_index(int(np.argmin(d)), d.shape)
             return Goal(centers[i, j].copy(), coverage, int(gain[i, j]), reason="approach")
     if not candidate.any():
-        return Goal(None, coverage, finished=True, reason="no frontier", frontiers=int(front.sum()))
+        return Goal(None, coverage, finished=True, reason="no frontier")
     utility = gain * np.exp(-params.distance_weight * np.linalg.norm(centers - robot, axis=-1))
     if len(peer_goals) and params.goal_separation_m > 0:
         nearest = np.min([np.linalg.norm(centers - np.asarray(g, float)[:2], axis=-1) for g in peer_goals], axis=0)
@@ -187,4 +185,4 @@ def choose_goal(
             utility = utility * (nearest / params.goal_separation_m) ** 2
     score = np.where(candidate, utility, -np.inf)
     i, j = np.unravel_index(int(np.argmax(score)), score.shape)
-    return Goal(centers[i, j].copy(), coverage, int(gain[i, j]), float(utility[i, j]), frontiers=int(front.sum()))
+    return Goal(centers[i, j].copy(), coverage, int(gain[i, j]))

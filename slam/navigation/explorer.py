@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam.lie import apply_planar
 from slam.navigation.exploration import ExplorationParams, Goal, RegionGrid, choose_goal
 from slam.submap import Submap
 
@@ -30,11 +31,6 @@ def _footprint(points: np.ndarray, cell_m: float) -> np.ndarray:
     return (ij + 0.5) * cell_m
 
 
-def _apply(T: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """The planar part of a gravity-aligned pose ``T`` applied to points ``xy`` (n, 2)."""
-    return xy @ T[:2, :2].T + T[:2, 3]
-
-
 class Explorer:
     """Explored and obstacle grids of the ``region`` from the robot's maps, and its goals."""
 
@@ -42,7 +38,6 @@ class Explorer:
         self.params = params
         self.grid = RegionGrid(region, params.cell_m)
         self._footprints: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
-        self.coverage = 0.0  # the region's explored fraction at the latest goal, as the robot believes it
 
     def _submap_cells(self, submap: Submap) -> tuple[np.ndarray, np.ndarray]:
         key = submap.key
@@ -66,15 +61,15 @@ class Explorer:
         for submap, S in placed:
             cells, obstacle_cells = self._submap_cells(submap)
             T = T_world_map @ S
-            explored |= self.grid.mark(_apply(T, cells))
-            obstacles |= self.grid.mark(_apply(T, obstacle_cells))
+            explored |= self.grid.mark(apply_planar(T, cells))
+            obstacles |= self.grid.mark(apply_planar(T, obstacle_cells))
         if rolling is not None and T_world_odom is not None:
             trav, origin, resolution = rolling
             seen = ~np.isnan(trav)
             with np.errstate(invalid="ignore"):
                 blocked = trav > 1
             ij = np.argwhere(seen)
-            xy = _apply(T_world_odom, (ij + np.asarray(origin) + 0.5) * resolution)
+            xy = apply_planar(T_world_odom, (ij + np.asarray(origin) + 0.5) * resolution)
             explored |= self.grid.mark(xy)
             obstacles |= self.grid.mark(xy[blocked[seen]])
         return explored, obstacles
@@ -88,6 +83,4 @@ class Explorer:
         visited: list[np.ndarray] = (),
     ) -> Goal:
         """The next goal from the grids (:func:`slam.navigation.exploration.choose_goal`)."""
-        goal = choose_goal(self.grid, explored, obstacles, robot_xy, self.params, peer_goals, visited)
-        self.coverage = goal.coverage
-        return goal
+        return choose_goal(self.grid, explored, obstacles, robot_xy, self.params, peer_goals, visited)
