@@ -400,7 +400,7 @@ class OnboardStack:
         self._exploration = cfg
         self._goal_ready: Goal | None = None
         self._goal_queued = False
-        self._first_goal = True
+        self._scan_first = cfg.initial_scan
         self._finished = False
         self._known_goals: set[tuple[str, float]] = set()  # the peers' goals it knew when it chose its latest
         self._announced_t = -math.inf
@@ -414,11 +414,11 @@ class OnboardStack:
         """The next goal once an ``exploration`` job has chosen it (one is queued if none is);
         the first, with ``initial_scan``, a scan where the robot stands."""
         cfg = self._exploration
-        if self._first_goal and cfg.initial_scan:
+        if self._scan_first:
             T = self._believed_pose()
             if T is None:
                 return None
-            self._first_goal = False
+            self._scan_first = False
             return WaypointConfig(xy=(float(T[0, 3]), float(T[1, 3])), scan=True)
         goal, self._goal_ready = self._goal_ready, None
         if goal is not None:
