@@ -12,6 +12,8 @@ like a map (:func:`sim.evaluation.map_quality.score_obstacles`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from sim.evaluation.map_quality import MapQualityParams, ObstacleScore, score_obstacles
@@ -29,6 +31,22 @@ def _keys(cells: np.ndarray) -> np.ndarray:
 
 def _cells(keys: np.ndarray) -> np.ndarray:
     return np.column_stack([(keys >> 31) - _OFFSET, (keys & ((1 << 31) - 1)) - _OFFSET])
+
+
+@dataclass(frozen=True, eq=False)
+class MappedImage:
+    """One mapped depth image of a robot with what the simulator knows of it (for tools that
+    look into the classification, e.g. ``sim.tools.obstacle_sources``)."""
+
+    robot: str
+    frame: int
+    depth: np.ndarray  # the robot's stereo z-depth (m) of its VO rig's left camera
+    obstacle: np.ndarray  # its per-pixel obstacle flags, classified on its believed camera pose
+    T_world_cam: np.ndarray  # true pose of that camera at capture (OpenCV axes)
+    others: list[tuple[np.ndarray, float]]  # the other robots' true xy and body radii at capture
+    true_depth: np.ndarray | None  # the rendered z-depth of the same camera (inf: sky); None where not rendered
+    calibration: StereoCalibration
+    params: ObstacleParams
 
 
 class ImageCells:

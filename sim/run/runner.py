@@ -28,7 +28,7 @@ import simpy
 from scipy.spatial.transform import Rotation
 
 from comms import Network, StereoStream, raw_stereo_load
-from sim.evaluation.image_classification import ImageCells
+from sim.evaluation.image_classification import ImageCells, MappedImage
 from sim.robots import make_robot
 from sim.robots.base import Robot
 from sim.run.collisions import CollisionMonitor
@@ -167,7 +167,7 @@ class RobotRuntime:
     log: RobotLog = field(default_factory=RobotLog)
     faults: ConditionFaults | None = None  # the scenario's condition faults that hit the robot (sim/run/faults.py)
     image_cells: ImageCells | None = None  # mapped images' obstacle cells at true camera poses
-    capture_truth: dict[int, tuple[np.ndarray, list]] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots
+    capture_truth: dict[int, tuple] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots, true depth or None
     dataset: DatasetWriter | None = None  # output.dataset: the robot's sensor data as it comes (sim/run/dataset.py)
 
 
@@ -189,10 +189,19 @@ ProgressCallback = Callable[[float, dict[str, str]], None]
 class Run:
     """One scenario run. ``execute()`` runs it; afterwards the attributes hold everything
     :mod:`sim.evaluation.results_folder` writes. A failure mid-run leaves what was produced so far in place.
-    With a ``dataset`` the run writes every robot's sensor data into it and closes it when it ends."""
+    With a ``dataset`` the run writes every robot's sensor data into it and closes it when it ends.
+    An ``image_observer`` receives every mapped image with its truth (``MappedImage``; the
+    true depth where the frame rendered it, ``camera.depth_ground_truth_every``)."""
 
-    def __init__(self, scenario: Scenario, recorder: Recorder | None = None, dataset: EurocDataset | None = None):
+    def __init__(
+        self,
+        scenario: Scenario,
+        recorder: Recorder | None = None,
+        dataset: EurocDataset | None = None,
+        image_observer: Callable[[MappedImage], None] | None = None,
+    ):
         self.scenario = scenario
+        self.image_observer = image_observer
         self.streams = RandomStreams(scenario.seed)
         self.timers = Timers()
         self.memory = MemoryTrace()
@@ -600,7 +609,8 @@ class Run:
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
                     if runtime.image_cells is not None:
-                        runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot))
+                        true_depth = stereo.depth if self.image_observer is not None else None
+                        runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), true_depth)
                 onboard.detection(now, stereo.left, rig, T_body_cam)
             job = runtime.lane.submit(
                 "stereo",
@@ -640,7 +650,12 @@ class Run:
             del runtime.capture_truth[stale]
         if truth is not None:
             t = time.perf_counter()
-            runtime.image_cells.add(depth, obstacle, *truth)
+            T_world_cam, others, true_depth = truth
+            cells = runtime.image_cells
+            cells.add(depth, obstacle, T_world_cam, others)
+            if self.image_observer is not None:
+                name = runtime.robot.name
+                self.image_observer(MappedImage(name, frame_id, depth, obstacle, T_world_cam, others, true_depth, cells.calibration, cells.params))
             self.timers.add("evaluation", t)
 
     def _timed(self, part: str, fn, *args):

@@ -89,15 +89,20 @@ class RockyScene:
 
     def view(self, T_world_head: np.ndarray):
         """Grey left image, SGBM depth and the left camera's world pose (OpenCV axes)."""
+        left, depth, _, T_world_cam = self.view_with_true_depth(T_world_head, with_true_depth=False)
+        return left, depth, T_world_cam
+
+    def view_with_true_depth(self, T_world_head: np.ndarray, with_true_depth: bool = True):
+        """:meth:`view` with the rendered z-depth of the left camera (inf: sky) before the pose."""
         q = np.zeros(4)
         mujoco.mju_mat2Quat(q, T_world_head[:3, :3].ravel())
         self.data.mocap_pos[0], self.data.mocap_quat[0] = T_world_head[:3, 3], q
         mujoco.mj_forward(self.model, self.data)
-        frame = self.renderer.render(self.data)
+        frame = self.renderer.render(self.data, with_depth=with_true_depth)
         left, right = (frame.left, frame.right) if self.imaging is None else self.imaging.expose(frame.left, frame.right)
         depth = self.stereo.depth(left, right)
         T_world_cam = se3(self.data.cam_xmat[self._left].reshape(3, 3) @ MUJOCO_TO_OPENCV, self.data.cam_xpos[self._left])
-        return left, depth, T_world_cam
+        return left, depth, frame.depth, T_world_cam
 
     def submap(self, robot: str, index: int, start_xy, end_xy, images: int = 24, yaw_offset: float = 0.0) -> tuple[Submap, np.ndarray]:
         """A submap of a straight drive from ``start_xy`` to ``end_xy`` (head looking along
