@@ -44,12 +44,12 @@ bench: setup
 
 # the thesis's claims as batches (docs/fidelity.md), into results/experiments/<name>/, then the claims table
 # (sim/tools/fidelity.py); each batch resumes where it
-# stopped (about 12 h on 2 cores in all: multi_vs_single 2.2 h, graph_topology and bandwidth about 2.3 h each,
-# matching_4d_6d and marker_uncertainty about 2.5 h each); a batch with runs that did not complete makes the
+# stopped (about 9.5 h on 2 cores in all, as measured: multi_vs_single 2.2 h, graph_topology 2.65 h, bandwidth
+# 2.3 h, matching_4d_6d 1.06 h, marker_uncertainty 1.29 h); a batch with runs that did not complete makes the
 # target fail at the end
 EXPERIMENTS ?= multi_vs_single graph_topology bandwidth matching_4d_6d marker_uncertainty
 experiments: setup
-	@echo "make experiments: $(EXPERIMENTS) (about 12 h on 2 cores; interrupt and rerun to continue)"
+	@echo "make experiments: $(EXPERIMENTS) (about 9.5 h on 2 cores; interrupt and rerun to continue)"
 	@status=0; for name in $(EXPERIMENTS); do \
 		$(BIN)/marsyard batch scenarios/experiments/$$name.yaml --out results/experiments/$$name --resume --workers $(WORKERS); \
 		code=$$?; [ $$code -eq 130 ] && exit 130; [ $$code -ne 0 ] && status=1; \
