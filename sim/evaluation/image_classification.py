@@ -5,9 +5,11 @@ that ``map.classification`` (own submaps on their true origins) still carries.
 While a run maps, :class:`ImageCells` collects per robot the 2.5D cells its images saw
 within the classification's range (:func:`slam.obstacles.classified_pixels`) and the
 cells of their pixels flagged as obstacles, each pixel placed by the true pose of the
-left camera at capture; pixels on or beside another robot
-(its true position at capture) are left out and counted. At the end the cells are scored
-like a map (:func:`sim.evaluation.map_quality.score_obstacles`).
+left camera at capture; pixels on or beside another robot (its true position at capture)
+are left out and counted: those whose point is placed there, and, where the frame has
+its rendered depth, those whose true point lies there (stereo places a robot's silhouette
+pixels up to 0.8 m too near, out of its surroundings; docs/mapping.md). At the end the
+cells are scored like a map (:func:`sim.evaluation.map_quality.score_obstacles`).
 """
 
 from __future__ import annotations
@@ -49,6 +51,12 @@ class MappedImage:
     params: ObstacleParams
 
 
+def _world_xy(depth: np.ndarray, pixels: np.ndarray, calibration: StereoCalibration, T_world_cam: np.ndarray) -> np.ndarray:
+    """World xy (n, 2) of the points of ``depth`` at the ``pixels`` mask."""
+    cam = depth_to_points(depth, calibration)[pixels].astype(float)
+    return (cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3])[:, :2]
+
+
 class ImageCells:
     """Seen and flagged cells of one robot's mapped images at true camera poses."""
 
@@ -61,19 +69,31 @@ class ImageCells:
         self._seen: list[np.ndarray] = [np.zeros(0, np.int64)]
         self._flagged: list[np.ndarray] = [np.zeros(0, np.int64)]
 
-    def add(self, depth: np.ndarray, obstacle: np.ndarray, T_world_cam: np.ndarray, robots: list[tuple[np.ndarray, float]]) -> None:
+    def add(
+        self,
+        depth: np.ndarray,
+        obstacle: np.ndarray,
+        T_world_cam: np.ndarray,
+        robots: list[tuple[np.ndarray, float]],
+        true_depth: np.ndarray | None = None,
+    ) -> None:
         """One mapped depth image with its per-pixel obstacle flags, the true pose of its
-        camera (OpenCV axes) and the other robots' true xy with their body radii (their
-        surroundings are not scored, :attr:`MapQualityParams.robot_margin_m` beyond)."""
+        camera (OpenCV axes), the other robots' true xy with their body radii (their
+        surroundings are not scored, :attr:`MapQualityParams.robot_margin_m` beyond) and,
+        if rendered, the camera's true z-depth (inf: sky), which tells the pixels that saw
+        a robot wherever stereo placed them."""
         cal, p = self.calibration, self.params
         seen = classified_pixels(depth, cal, p)
-        cam = depth_to_points(depth, cal)[seen].astype(float)
-        xy = (cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3])[:, :2]
+        xy = _world_xy(depth, seen, cal, T_world_cam)
         flagged = obstacle[seen]
+        true_xy = None if true_depth is None or not robots else _world_xy(true_depth, seen, cal, T_world_cam)
         on = np.zeros(len(xy), bool)
         margin = MapQualityParams(obstacle=p).robot_margin_m
         for centre, radius in robots:
             on |= np.hypot(*(xy - centre).T) < radius + margin
+            if true_xy is not None:
+                with np.errstate(invalid="ignore"):
+                    on |= np.hypot(*(true_xy - centre).T) < radius + margin  # sky (inf, NaN): False
         self.images += 1
         self.pixels_on_robots += int(on.sum())
         self.obstacle_pixels_on_robots += int((on & flagged).sum())

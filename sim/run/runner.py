@@ -609,8 +609,7 @@ class Run:
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
                     if runtime.image_cells is not None:
-                        true_depth = stereo.depth if self.image_observer is not None else None
-                        runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), true_depth)
+                        runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), stereo.depth)
                 onboard.detection(now, stereo.left, rig, T_body_cam)
             job = runtime.lane.submit(
                 "stereo",
@@ -652,7 +651,7 @@ class Run:
             t = time.perf_counter()
             T_world_cam, others, true_depth = truth
             cells = runtime.image_cells
-            cells.add(depth, obstacle, T_world_cam, others)
+            cells.add(depth, obstacle, T_world_cam, others, true_depth)
             if self.image_observer is not None:
                 name = runtime.robot.name
                 self.image_observer(MappedImage(name, frame_id, depth, obstacle, T_world_cam, others, true_depth, cells.calibration, cells.params))

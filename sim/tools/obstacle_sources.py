@@ -62,9 +62,9 @@ class ObstacleSources:
             self.near_robot[image.robot] = set()
             self.without_truth[image.robot] = 0
         cells = self.cells[image.robot]
-        cells["as_run"].add(image.depth, image.obstacle, image.T_world_cam, image.others)
+        cells["as_run"].add(image.depth, image.obstacle, image.T_world_cam, image.others, image.true_depth)
         at_true_pose = classify_depth(image.depth, cal, image.T_world_cam, params).pixel_obstacles
-        cells["true_pose"].add(image.depth, at_true_pose, image.T_world_cam, image.others)
+        cells["true_pose"].add(image.depth, at_true_pose, image.T_world_cam, image.others, image.true_depth)
         if image.true_depth is None:
             self.without_truth[image.robot] += 1
         else:
