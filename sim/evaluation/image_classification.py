@@ -51,7 +51,7 @@ class MappedImage:
     params: ObstacleParams
 
 
-def _world_xy(depth: np.ndarray, pixels: np.ndarray, calibration: StereoCalibration, T_world_cam: np.ndarray) -> np.ndarray:
+def world_xy(depth: np.ndarray, pixels: np.ndarray, calibration: StereoCalibration, T_world_cam: np.ndarray) -> np.ndarray:
     """World xy (n, 2) of the points of ``depth`` at the ``pixels`` mask."""
     cam = depth_to_points(depth, calibration)[pixels].astype(float)
     return (cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3])[:, :2]
@@ -84,9 +84,9 @@ class ImageCells:
         a robot wherever stereo placed them."""
         cal, p = self.calibration, self.params
         seen = classified_pixels(depth, cal, p)
-        xy = _world_xy(depth, seen, cal, T_world_cam)
+        xy = world_xy(depth, seen, cal, T_world_cam)
         flagged = obstacle[seen]
-        true_xy = None if true_depth is None or not robots else _world_xy(true_depth, seen, cal, T_world_cam)
+        true_xy = None if true_depth is None or not robots else world_xy(true_depth, seen, cal, T_world_cam)
         on = np.zeros(len(xy), bool)
         margin = MapQualityParams(obstacle=p).robot_margin_m
         for centre, radius in robots:

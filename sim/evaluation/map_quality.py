@@ -121,26 +121,34 @@ class SurfaceTruth:
         self.tree = cKDTree(self.points)
 
 
-def true_obstacle_cells(terrain: Terrain, origin: np.ndarray, shape: tuple[int, int], params: MapQualityParams) -> np.ndarray:
-    """Bool (nx, ny) grid of cells ``origin + (i, j)`` (lattice ``floor(xy / cell)``) that the
-    classification criterion calls impassable on the true surface: a window height
-    difference above the step height, or a drop above the step height steeper than the
-    maximal slope (:func:`slam.obstacles.steep_drops` without a margin); the lander's
-    footprint is an obstacle. The surface is sampled beyond the grid so that drops at its
-    edge see their foot."""
-    o = params.obstacle
-    cell = o.resolution_m
-    pad = max(slope_reach_cells(o), o.window_cells)
+def true_step_and_drop(terrain: Terrain, origin: np.ndarray, shape: tuple[int, int], params: ObstacleParams) -> tuple[np.ndarray, np.ndarray]:
+    """The classification criterion's two measures on the true surface (terrain or rock top,
+    sampled at the cell centres) for the (nx, ny) cells ``origin + (i, j)`` (lattice
+    ``floor(xy / cell)``): the window height difference and the steep-drop ratio
+    (:func:`slam.obstacles.steep_drops` without a margin). The surface is sampled beyond
+    the grid so that drops at its edge see their foot."""
+    cell = params.resolution_m
+    pad = max(slope_reach_cells(params), params.window_cells)
     i = (origin[0] - pad + np.arange(shape[0] + 2 * pad) + 0.5) * cell
     j = (origin[1] - pad + np.arange(shape[1] + 2 * pad) + 0.5) * cell
     cx, cy = np.meshgrid(i, j, indexing="ij")
     h = terrain.surface_height_at(cx.ravel(), cy.ravel()).reshape(cx.shape)
-    k = o.window_cells
-    steps = maximum_filter(h, size=k, mode="nearest") - minimum_filter(h, size=k, mode="nearest") > o.step_height_m
+    k = params.window_cells
+    h_diff = maximum_filter(h, size=k, mode="nearest") - minimum_filter(h, size=k, mode="nearest")
     inner = (slice(pad, pad + shape[0]), slice(pad, pad + shape[1]))
-    obstacles = steps[inner] | (steep_drops(h, o)[inner] > 1)
-    lander = ~_outside_lander(terrain, np.column_stack([cx[inner].ravel(), cy[inner].ravel()]), 0.0).reshape(shape)
-    return obstacles | lander
+    return h_diff[inner], steep_drops(h, params)[inner]
+
+
+def true_obstacle_cells(terrain: Terrain, origin: np.ndarray, shape: tuple[int, int], params: MapQualityParams) -> np.ndarray:
+    """Bool (nx, ny) grid of cells ``origin + (i, j)`` (lattice ``floor(xy / cell)``) that the
+    classification criterion calls impassable on the true surface (:func:`true_step_and_drop`):
+    a window height difference above the step height, or a drop above the step height
+    steeper than the maximal slope; the lander's footprint is an obstacle."""
+    o = params.obstacle
+    h_diff, drop = true_step_and_drop(terrain, origin, shape, o)
+    centres = (np.asarray(origin)[None, None, :] + np.stack(np.indices(shape), axis=-1) + 0.5) * o.resolution_m
+    lander = ~_outside_lander(terrain, centres.reshape(-1, 2), 0.0).reshape(shape)
+    return (h_diff > o.step_height_m) | (drop > 1) | lander
 
 
 @dataclass(frozen=True, eq=False)

@@ -33,15 +33,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import maximum_filter, minimum_filter
 
-from sim.evaluation.image_classification import ImageCells, MappedImage
-from sim.evaluation.map_quality import ObstacleScore
+from sim.evaluation.image_classification import ImageCells, MappedImage, world_xy
+from sim.evaluation.map_quality import ObstacleScore, true_step_and_drop
 from sim.run.runner import Run
 from sim.scenario import ScenarioError, load_scenario
 from sim.world.terrain import Terrain
-from slam.obstacles import ObstacleParams, classified_pixels, classify_depth, slope_reach_cells, steep_drops
-from slam.stereo import depth_to_points
+from slam.obstacles import ObstacleParams, classified_pixels, classify_depth
 
 WAYS = ("as_run", "true_pose", "true_depth")
 
@@ -72,7 +70,7 @@ class ObstacleSources:
             cells["true_depth"].add(image.true_depth, flags, image.T_world_cam, image.others)
         if image.others:
             flagged = image.obstacle & classified_pixels(image.depth, cal, params)
-            xy = (depth_to_points(image.depth, cal)[flagged].astype(float) @ image.T_world_cam[:3, :3].T + image.T_world_cam[:3, 3])[:, :2]
+            xy = world_xy(image.depth, flagged, cal, image.T_world_cam)
             near = np.zeros(len(xy), bool)
             for centre, radius in image.others:
                 near |= np.hypot(*(xy - centre).T) < radius + self.near_robot_m
@@ -109,20 +107,14 @@ def _missed(xy: np.ndarray, terrain: Terrain, params: ObstacleParams) -> dict:
     """The missed true cells split into step cells (window height difference above ``h_max``,
     with the median difference) and steep-drop-only cells (with the median ratio of drop to
     ``h_max``), from the true surface as ``sim.evaluation.map_quality.true_obstacle_cells``
-    samples it."""
+    samples it (:func:`sim.evaluation.map_quality.true_step_and_drop`)."""
     if len(xy) == 0:
         return {"cells": 0, "steep_drop_only": 0, "drop_ratio_median": None, "step_h_diff_median_m": None}
-    res = params.resolution_m
-    keys = np.floor(xy / res).astype(np.int64)
-    pad = max(slope_reach_cells(params), params.window_cells)
-    lo = keys.min(axis=0) - pad
-    shape = tuple(int(v) for v in keys.max(axis=0) - lo + pad + 1)
-    cx, cy = np.meshgrid((lo[0] + np.arange(shape[0]) + 0.5) * res, (lo[1] + np.arange(shape[1]) + 0.5) * res, indexing="ij")
-    h = terrain.surface_height_at(cx.ravel(), cy.ravel()).reshape(shape)
-    k = params.window_cells
-    h_diff = (maximum_filter(h, size=k, mode="nearest") - minimum_filter(h, size=k, mode="nearest"))[tuple((keys - lo).T)]
+    keys = np.floor(xy / params.resolution_m).astype(np.int64)
+    lo = keys.min(axis=0)
+    h_diff, ratio = true_step_and_drop(terrain, lo, tuple(int(v) for v in keys.max(axis=0) - lo + 1), params)
+    h_diff, ratio = h_diff[tuple((keys - lo).T)], ratio[tuple((keys - lo).T)]
     step = h_diff > params.step_height_m
-    ratio = steep_drops(h, params)[tuple((keys - lo).T)]
     drop_only = ~step & (ratio > 1)
     return {
         "cells": len(keys),
