@@ -86,7 +86,10 @@ class ImageCells:
         seen = classified_pixels(depth, cal, p)
         xy = world_xy(depth, seen, cal, T_world_cam)
         flagged = obstacle[seen]
-        true_xy = None if true_depth is None or not robots else world_xy(true_depth, seen, cal, T_world_cam)
+        true_xy = None
+        if true_depth is not None and robots:
+            with np.errstate(invalid="ignore"):  # sky: inf depth gives inf/NaN coordinates
+                true_xy = world_xy(true_depth, seen, cal, T_world_cam)
         on = np.zeros(len(xy), bool)
         margin = MapQualityParams(obstacle=p).robot_margin_m
         for centre, radius in robots:
