@@ -676,6 +676,11 @@ class MatchingConfig(StrictModel):
         SlamParam(MatcherParams, "keypoints"),
         description="keypoints from obstacle points (thesis 6.1.1), salient local geometry (surface variation; 9.3), or both",
     )
+    points: Literal["all", "classified"] = slam_field(
+        SlamParam(MatcherParams, "points"),
+        description="match on the whole cloud, or only on the points within the obstacle classification's range "
+        "(stereo depth error and calibration bias grow with z^2, eq. 5.2c)",
+    )
     min_overlap_m2: PositiveFloat = slam_field(
         SlamParam(MatcherParams, "min_overlap_m2"),
         description="eq. 6.2: xy overlap of the obstacle bounding boxes, widened by 2 relative sigmas",

@@ -71,11 +71,22 @@ class KeypointSelection(StrEnum):
     BOTH = "both"
 
 
+class MatchPoints(StrEnum):
+    """Which of a submap's points the matcher uses: keypoints, descriptors and ICP."""
+
+    ALL = "all"  # the whole cloud, out to the mapping range (SubmapParams.max_depth_error_m)
+    # only the points within the obstacle classification's range (Submap.classified): stereo depth error
+    # grows with z^2 (eq. 5.2c), and so does the depth bias of a stereo calibration error, which distorts
+    # two robots' far points differently (docs/matching.md, "Calibration error and far points")
+    CLASSIFIED = "classified"
+
+
 @dataclass(frozen=True)
 class MatcherParams:
     mode: MatchMode = MatchMode.FOUR_D
     # suitability and keypoints (6.1.1)
     keypoints: KeypointSelection = KeypointSelection.OBSTACLES  # as the thesis; geometry and both measured in docs/matching.md
+    points: MatchPoints = MatchPoints.ALL
     min_points: int = 1000
     min_selected_points: int = 100  # thesis: 100 obstacle points; here of the keypoint selection
     saliency_radius_m: float = 0.2  # neighbourhood of the surface variation (geometry keypoints)
@@ -132,6 +143,10 @@ class MatcherParams:
             object.__setattr__(self, "keypoints", KeypointSelection(self.keypoints))
         except ValueError:
             raise MatcherException(f"keypoints must be one of {[k.value for k in KeypointSelection]}, got {self.keypoints!r}") from None
+        try:
+            object.__setattr__(self, "points", MatchPoints(self.points))
+        except ValueError:
+            raise MatcherException(f"points must be one of {[k.value for k in MatchPoints]}, got {self.points!r}") from None
         bad = [
             f"{k}={v}" for k, v in vars(self).items() if isinstance(v, int | float) and not isinstance(v, bool) and (not math.isfinite(v) or v < 0)
         ]
@@ -191,11 +206,15 @@ def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     or without the obstacle voxels, counted in voxels). Keypoints are dropped where less
     than ``min_known_fraction`` of the voxels in the descriptor sphere are known; at
     least ``min_off_line_keypoints`` of them must lie farther than ``line_distance_m``
-    (xy) from a RANSAC line through them."""
+    (xy) from a RANSAC line through them. With ``params.points`` CLASSIFIED, all of this
+    (and the cloud kept for descriptors and ICP) sees only the submap's classified points."""
     pts = np.asarray(submap.points, dtype=float)
+    obstacle = np.asarray(submap.obstacle, dtype=bool)
+    if params.points is MatchPoints.CLASSIFIED:
+        near = np.asarray(submap.classified, dtype=bool)
+        pts, obstacle = pts[near], obstacle[near]
     if len(pts) < params.min_points:
         return "too few points"
-    obstacle = np.asarray(submap.obstacle, dtype=bool)
     if params.keypoints is KeypointSelection.OBSTACLES:
         n = int(obstacle.sum())
         kp = voxel_filter(pts[obstacle], np.ones(n, bool), np.zeros(n), params.keypoint_resolution_m)[0] if n >= params.min_selected_points else None
