@@ -676,10 +676,10 @@ class MatchingConfig(StrictModel):
         SlamParam(MatcherParams, "keypoints"),
         description="keypoints from obstacle points (thesis 6.1.1), salient local geometry (surface variation; 9.3), or both",
     )
-    points: Literal["all", "classified"] = slam_field(
-        SlamParam(MatcherParams, "points"),
-        description="match on the whole cloud, or only on the points within the obstacle classification's range "
-        "(stereo depth error and calibration bias grow with z^2, eq. 5.2c)",
+    icp_points: Literal["all", "classified"] = slam_field(
+        SlamParam(MatcherParams, "icp_points"),
+        description="the ICP refinement aligns the whole clouds, or only their points within the obstacle classification's "
+        "range (stereo depth error and a calibration's depth bias grow with z^2, eq. 5.2c)",
     )
     min_overlap_m2: PositiveFloat = slam_field(
         SlamParam(MatcherParams, "min_overlap_m2"),

@@ -72,12 +72,12 @@ class KeypointSelection(StrEnum):
 
 
 class MatchPoints(StrEnum):
-    """Which of a submap's points the matcher uses: keypoints, descriptors and ICP."""
+    """Which of a submap's points the ICP refinement aligns (6.1.2)."""
 
     ALL = "all"  # the whole cloud, out to the mapping range (SubmapParams.max_depth_error_m)
     # only the points within the obstacle classification's range (Submap.classified): stereo depth error
     # grows with z^2 (eq. 5.2c), and so does the depth bias of a stereo calibration error, which distorts
-    # two robots' far points differently (docs/matching.md, "Calibration error and far points")
+    # two robots' far points differently (docs/matching.md, "Calibration bias and the ICP's points")
     CLASSIFIED = "classified"
 
 
@@ -86,7 +86,6 @@ class MatcherParams:
     mode: MatchMode = MatchMode.FOUR_D
     # suitability and keypoints (6.1.1)
     keypoints: KeypointSelection = KeypointSelection.OBSTACLES  # as the thesis; geometry and both measured in docs/matching.md
-    points: MatchPoints = MatchPoints.ALL
     min_points: int = 1000
     min_selected_points: int = 100  # thesis: 100 obstacle points; here of the keypoint selection
     saliency_radius_m: float = 0.2  # neighbourhood of the surface variation (geometry keypoints)
@@ -129,6 +128,7 @@ class MatcherParams:
     icp_max_distance_m: float = 0.25
     icp_iterations: int = 40
     icp_point_resolution_m: float = 0.1  # source cloud subsampling for the ICP
+    icp_points: MatchPoints = MatchPoints.ALL
     max_icp_rmse_m: float = 0.1
     min_icp_pairs: int = 300
     roll_pitch_sigma_rad: float = math.radians(0.5)  # 4D ICP: the filter's roll/pitch uncertainty of the origins
@@ -144,9 +144,9 @@ class MatcherParams:
         except ValueError:
             raise MatcherException(f"keypoints must be one of {[k.value for k in KeypointSelection]}, got {self.keypoints!r}") from None
         try:
-            object.__setattr__(self, "points", MatchPoints(self.points))
+            object.__setattr__(self, "icp_points", MatchPoints(self.icp_points))
         except ValueError:
-            raise MatcherException(f"points must be one of {[k.value for k in MatchPoints]}, got {self.points!r}") from None
+            raise MatcherException(f"icp_points must be one of {[k.value for k in MatchPoints]}, got {self.icp_points!r}") from None
         bad = [
             f"{k}={v}" for k, v in vars(self).items() if isinstance(v, int | float) and not isinstance(v, bool) and (not math.isfinite(v) or v < 0)
         ]
@@ -177,6 +177,7 @@ class Keypoints:
     points: np.ndarray  # (n, 3) keypoints in the submap frame
     selected_xyz: np.ndarray  # (m, 3) the selected points through the voxel filter, before the known-space filter (bounding boxes)
     cloud: np.ndarray  # (k, 3) the full point cloud
+    classified: np.ndarray  # (k,) the cloud's points within the obstacle classification's range
     descriptors: np.ndarray | None = None  # (n, 33) unit FPFH
     frames: np.ndarray | None = None  # (n, 3, 3) local reference frames, rows x, y, z
     normals: np.ndarray | None = None  # (k, 3) of the cloud
@@ -206,15 +207,11 @@ def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     or without the obstacle voxels, counted in voxels). Keypoints are dropped where less
     than ``min_known_fraction`` of the voxels in the descriptor sphere are known; at
     least ``min_off_line_keypoints`` of them must lie farther than ``line_distance_m``
-    (xy) from a RANSAC line through them. With ``params.points`` CLASSIFIED, all of this
-    (and the cloud kept for descriptors and ICP) sees only the submap's classified points."""
+    (xy) from a RANSAC line through them."""
     pts = np.asarray(submap.points, dtype=float)
-    obstacle = np.asarray(submap.obstacle, dtype=bool)
-    if params.points is MatchPoints.CLASSIFIED:
-        near = np.asarray(submap.classified, dtype=bool)
-        pts, obstacle = pts[near], obstacle[near]
     if len(pts) < params.min_points:
         return "too few points"
+    obstacle = np.asarray(submap.obstacle, dtype=bool)
     if params.keypoints is KeypointSelection.OBSTACLES:
         n = int(obstacle.sum())
         kp = voxel_filter(pts[obstacle], np.ones(n, bool), np.zeros(n), params.keypoint_resolution_m)[0] if n >= params.min_selected_points else None
@@ -227,7 +224,7 @@ def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     rng = np.random.default_rng([params.seed, submap.index, len(points)])
     if off_line_count(points, params.line_distance_m, 100, rng) < params.min_off_line_keypoints:
         return "keypoints line-like"
-    return Keypoints(submap.key, submap.frame_index, points, kp, pts)
+    return Keypoints(submap.key, submap.frame_index, points, kp, pts, np.asarray(submap.classified, dtype=bool))
 
 
 def salient_keypoints(pts: np.ndarray, obstacle: np.ndarray, params: MatcherParams) -> np.ndarray | None:
@@ -380,8 +377,15 @@ def _within(T: np.ndarray, prior: Prior | None, bound: float, sigma_xyz: np.ndar
     return bool(np.all(np.abs(T[:3, 3] - prior.T_a_b[:3, 3]) <= bound * np.hypot(prior.sigma_xyz, sigma_xyz)))
 
 
+def _icp_cloud(kp: Keypoints, params: MatcherParams) -> np.ndarray:
+    """Mask of ``kp.cloud`` the ICP aligns (``params.icp_points``)."""
+    return kp.classified if params.icp_points is MatchPoints.CLASSIFIED else np.ones(len(kp.cloud), bool)
+
+
 def _refine(source: np.ndarray, a: Keypoints, T0: np.ndarray, dof: int, params: MatcherParams) -> IcpResult | None:
-    return icp(source, a.cloud, a.normals, T0, dof, params.icp_max_distance_m, params.icp_iterations, min_pairs=params.min_icp_pairs, tree=a.tree)
+    m = _icp_cloud(a, params)
+    tree = a.tree if m.all() else None
+    return icp(source, a.cloud[m], a.normals[m], T0, dof, params.icp_max_distance_m, params.icp_iterations, min_pairs=params.min_icp_pairs, tree=tree)
 
 
 def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior | None = None) -> MatchResult:
@@ -430,7 +434,8 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
         res.reason = "no hypothesis"
         return res
     res.inliers = best[1]
-    source, _, _ = voxel_filter(b.cloud, np.zeros(len(b.cloud), bool), np.zeros(len(b.cloud)), params.icp_point_resolution_m)
+    cloud_b = b.cloud[_icp_cloud(b, params)]
+    source, _, _ = voxel_filter(cloud_b, np.zeros(len(cloud_b), bool), np.zeros(len(cloud_b)), params.icp_point_resolution_m)
     fit = _refine(source, a, best[0], params.ransac_dof, params)
     if fit is not None and params.mode is MatchMode.FOUR_SIX_D:  # 8.1.2's 4D+6D: the 4D result refined in 6D
         fit = _refine(source, a, fit.T_a_b, 6, params)

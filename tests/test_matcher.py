@@ -199,11 +199,19 @@ def rendered():
 
 
 @pytest.mark.parametrize(
-    "mode, keypoints", [("4d", "obstacles"), ("6d", "obstacles"), ("4d", "geometry"), ("4d", "both"), ("4d+6d", "both")]
+    "mode, keypoints, icp_points",
+    [
+        ("4d", "obstacles", "all"),
+        ("6d", "obstacles", "all"),
+        ("4d", "geometry", "all"),
+        ("4d", "both", "all"),
+        ("4d+6d", "both", "all"),
+        ("4d", "both", "classified"),
+    ],
 )
-def test_rendered_submaps_of_the_same_rocks_match(rendered, mode, keypoints):
+def test_rendered_submaps_of_the_same_rocks_match(rendered, mode, keypoints, icp_points):
     (A, O_a), (B, O_b), _, _ = rendered
-    p = MatcherParams(mode=mode, keypoints=keypoints)
+    p = MatcherParams(mode=mode, keypoints=keypoints, icp_points=icp_points)
     ka, kb = prepare(A, p), prepare(B, p)
     res = match_pair(ka, kb, p)
     assert res.success, res.reason
@@ -270,6 +278,23 @@ def test_geometry_keypoints_reach_beyond_the_obstacles(rendered):
     assert len(both.points) > len(obstacles.points)
 
 
+def test_icp_on_classified_points_aligns_only_those(rendered):
+    """With ``icp_points`` classified the ICP pairs only the two submaps' classified
+    points (a strict subset here): fewer pairs than over the whole clouds, and the
+    refinement still recovers the true transform from the same hypothesis."""
+    (A, O_a), (B, O_b), _, _ = rendered
+    near = np.asarray(A.classified, bool)
+    assert 0 < near.sum() < len(near)
+    whole, classified = MatcherParams(keypoints="both"), MatcherParams(keypoints="both", icp_points="classified")
+    ka, kb = prepare(A, whole), prepare(B, whole)
+    np.testing.assert_array_equal(ka.classified, near)
+    res_whole, res_near = match_pair(ka, kb, whole), match_pair(ka, kb, classified)
+    assert res_whole.success and res_near.success, (res_whole.reason, res_near.reason)
+    assert res_near.icp.pairs < res_whole.icp.pairs
+    t_err, yaw_err = errors(res_near.T_a_b, np.linalg.inv(O_a) @ O_b)
+    assert t_err < 0.1 and yaw_err < 1.0
+
+
 def test_salient_keypoints_are_thinned_to_the_most_salient_per_cell(rendered):
     """Salient keypoints keep one voxel centroid per ``salient_spacing_m`` cell, the most
     salient at the wide radius; with ``both`` every obstacle voxel stays besides them."""
@@ -326,6 +351,8 @@ def test_params_validation():
     with pytest.raises(ValueError, match="keypoints"):
         MatcherParams(keypoints="edges")
     assert MatcherParams(keypoints="geometry").keypoints is KeypointSelection.GEOMETRY
+    with pytest.raises(ValueError, match="icp_points"):
+        MatcherParams(icp_points="near")
 
 
 def _chain(graph, robot: str, target: np.ndarray, frames: int, sigma_m: float) -> None:
