@@ -377,14 +377,15 @@ def _within(T: np.ndarray, prior: Prior | None, bound: float, sigma_xyz: np.ndar
     return bool(np.all(np.abs(T[:3, 3] - prior.T_a_b[:3, 3]) <= bound * np.hypot(prior.sigma_xyz, sigma_xyz)))
 
 
-def _icp_cloud(kp: Keypoints, params: MatcherParams) -> np.ndarray:
-    """Mask of ``kp.cloud`` the ICP aligns (``params.icp_points``)."""
-    return kp.classified if params.icp_points is MatchPoints.CLASSIFIED else np.ones(len(kp.cloud), bool)
+def _icp_points(kp: Keypoints, params: MatcherParams) -> np.ndarray | slice:
+    """Index of the points of ``kp.cloud`` the ICP aligns (``params.icp_points``); the
+    whole cloud as a slice, so that it is not copied."""
+    return kp.classified if params.icp_points is MatchPoints.CLASSIFIED else slice(None)
 
 
 def _refine(source: np.ndarray, a: Keypoints, T0: np.ndarray, dof: int, params: MatcherParams) -> IcpResult | None:
-    m = _icp_cloud(a, params)
-    tree = a.tree if m.all() else None
+    m = _icp_points(a, params)
+    tree = a.tree if params.icp_points is MatchPoints.ALL else None
     return icp(source, a.cloud[m], a.normals[m], T0, dof, params.icp_max_distance_m, params.icp_iterations, min_pairs=params.min_icp_pairs, tree=tree)
 
 
@@ -434,7 +435,7 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
         res.reason = "no hypothesis"
         return res
     res.inliers = best[1]
-    cloud_b = b.cloud[_icp_cloud(b, params)]
+    cloud_b = b.cloud[_icp_points(b, params)]
     source, _, _ = voxel_filter(cloud_b, np.zeros(len(cloud_b), bool), np.zeros(len(cloud_b)), params.icp_point_resolution_m)
     fit = _refine(source, a, best[0], params.ransac_dof, params)
     if fit is not None and params.mode is MatchMode.FOUR_SIX_D:  # 8.1.2's 4D+6D: the 4D result refined in 6D
