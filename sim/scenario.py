@@ -755,6 +755,10 @@ class SlamConfig(StrictModel):
     gyro_scale_correlation_s: PositiveFloat = slam_field(
         SlamParam(FilterParams, "gyro_scale_correlation_s"), description="correlation time of that error"
     )
+    accel_misalignment_std_deg: NonNegFloat = slam_field(
+        SlamParam(FilterParams, "accel_misalignment_std", degrees=True),
+        description="std of the accelerometer z axis's lean towards x and y, held by the filter as consider parameters (0: none)",
+    )
     vo_disparity_bias_px: NonNegFloat = slam_field(
         SlamParam(VoParams, "disparity_bias_px"),
         description="std of a disparity offset common to all VO points (rectification error) in the VO's covariance",

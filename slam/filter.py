@@ -18,6 +18,21 @@ frame, so ``dtheta_z`` is the heading error about gravity and ``dtheta_x, dtheta
 the tilt errors. Each clone (state augmentation, eq. 4.3) adds six entries
 ``[dtheta_c (3), dp_c (3)]`` in the same convention, in the order of :attr:`clone_ids`.
 
+Consider parameters (Schmidt-Kalman filter)
+-------------------------------------------
+With ``FilterParams.accel_misalignment_std > 0`` two entries ``k = (k_x, k_y)`` follow
+the core, before the clones: the accelerometer's z axis senses ``f_z + k . (f_x, f_y)``.
+The IMU's calibration leaves ``k`` unknown at a fraction of a milliradian, and it matters
+on slopes: the error ``g k sin(tilt)`` is what a tilt error of ``-k`` does to ``f_z``,
+so the filter settles on that tilt error while its covariance, blind to ``k``, calls the
+tilt known far better. Estimating ``k`` needs the camera-IMU extrinsics estimated with
+it (docs/realism.md); instead ``k`` is a consider parameter (Schmidt 1966; Maybeck 1979,
+sec. 6.6): its estimate stays 0 and its covariance at the prior, but its
+cross-covariances with the state are propagated and updated like any other, so the
+state's covariance holds what an unknown ``k`` of that size does to it. The gain's rows
+for ``k`` are zero; the other rows and every other block of the update are the ordinary
+Kalman update's, since no measurement here depends on ``k`` directly.
+
 Conventions: local frame gravity-aligned with z up, ``g = [0, 0, -gravity]``; body x
 forward, y left, z up, IMU at the body origin; accelerometer ``f = R^T (a - g) + b_a + n``,
 gyro ``w = omega + b_w + n``.
@@ -25,8 +40,8 @@ gyro ``w = omega + b_w + n``.
 Covariance orderings returned
 -----------------------------
 - :meth:`covariance`: 15x15 core block in the order above (``dtheta`` left, local frame).
-- :meth:`full_covariance`: core then six per clone ``[dtheta_c, dp_c]``, clones in
-  :attr:`clone_ids` order.
+- :meth:`full_covariance`: core, the consider parameters ``k`` when modelled, then six
+  per clone ``[dtheta_c, dp_c]``, clones in :attr:`clone_ids` order.
 - :meth:`pose_covariance`: 6x6 ``[rotation, translation]`` of :meth:`pose`, *right*
   perturbation in the body frame, ``T_true = T Exp([omega, rho])`` to first order
   (GTSAM's ``Pose3`` convention): ``omega = R^T dtheta``, ``rho = R^T dp``.
@@ -90,8 +105,10 @@ from scipy.stats import chi2
 from slam.lie import euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_z, rot_zyx, se3, skew, so3_exp, so3_exp_batch, so3_log
 
 CORE = 15  # [dp, dv, dtheta, db_a, db_w]
+CONSIDER = 2  # [k_x, k_y]: the accelerometer's z-axis misalignment, when modelled
 CLONE = 6  # [dtheta_c, dp_c]
 _P, _V, _TH, _BA, _BW = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+_K = slice(CORE, CORE + CONSIDER)
 _TIME_EPS = 1e-6  # s: a clone time must match the last propagated time this closely
 _ORTHONORMALIZE_EVERY = 1000  # IMU samples between re-orthonormalisations of R
 
@@ -123,6 +140,14 @@ class FilterParams:
     variance ``(k |w|)^2 2 tau dt`` per axis and step, the low-frequency power of a
     first-order Gauss-Markov error with correlation time ``tau =
     gyro_scale_correlation_s`` (Gelb 1974, ch. 3), for turns up to ``2 tau`` long.
+    ``accel_misalignment_std`` (rad; 0: not modelled) is the std of each of the two
+    angles by which the accelerometer's z axis leans towards x and y, ``k``: the z axis
+    senses ``f_z + k . (f_x, f_y)``. A level body absorbs the other misalignments into
+    the biases; this one moves with the tilt (``g k sin(roll)`` on a side slope) and
+    looks to gravity like a roll or pitch error of ``-k`` (default: the 0.05 deg of a
+    factory-calibrated MEMS part, as for the gyros). It is held as two consider
+    parameters (Schmidt-Kalman filter, Schmidt 1966; Maybeck 1979, sec. 6.6; module
+    docstring), not estimated.
     """
 
     gyro_noise_density: float
@@ -142,6 +167,7 @@ class FilterParams:
     replay_horizon_s: float = 2.0
     gyro_scale_std: float = 0.001
     gyro_scale_correlation_s: float = 5.0
+    accel_misalignment_std: float = math.radians(0.05)
 
     def __post_init__(self):
         for name in ("gyro_noise_density", "accel_noise_density", "gyro_bias_random_walk", "accel_bias_random_walk"):
@@ -157,6 +183,7 @@ class FilterParams:
             "replay_horizon_s",
             "gyro_scale_std",
             "gyro_scale_correlation_s",
+            "accel_misalignment_std",
         ):
             if not getattr(self, name) >= 0.0:
                 raise FilterException(f"FilterParams.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -289,6 +316,8 @@ class LocalReferenceFilter:
         f = None if accel_at_rest is None else _resting_specific_force(accel_at_rest, params.gravity)
         roll, pitch = _roll_pitch_at_rest(f)
         u = None if rest_duration_s is None else _gravity_direction_at_rest(f, rest_duration_s)
+        self._base = CORE + (CONSIDER if params.accel_misalignment_std > 0.0 else 0)  # first clone entry
+        self._Pkk = np.eye(CONSIDER) * params.accel_misalignment_std**2
         self._init_direct_state(t0, roll, pitch, f, u, gyro_at_rest)
         self._init_clones()
         self._init_error_covariance(roll, pitch, f, u, rest_duration_s)
@@ -334,7 +363,7 @@ class LocalReferenceFilter:
         error is the bias across gravity (:func:`_tilt_from_accel_bias`), fully correlated
         with the bias error (their sum is what gravity observes)."""
         params = self.params
-        dim = CORE + CLONE * params.max_clones
+        dim = self._base + CLONE * params.max_clones
         self._Pbuf = np.zeros((dim, dim))
         P0 = self._Pbuf[:CORE, :CORE]
         P0[_P, _P] = np.eye(3) * params.initial_position_std**2
@@ -347,6 +376,8 @@ class LocalReferenceFilter:
             along = params.accel_noise_density**2 / rest_duration_s + params.accel_bias_random_walk**2 * rest_duration_s
             P0[_BA, _BA] += (along - params.initial_accel_bias_std**2) * np.outer(u, u)
         P0[_BW, _BW] = np.eye(3) * params.initial_gyro_bias_std**2
+        if self._base > CORE:
+            self._Pbuf[_K, _K] = self._Pkk
         if f is not None:
             T = _tilt_from_accel_bias(f, M)
             Pb = P0[_BA, _BA]
@@ -371,7 +402,7 @@ class LocalReferenceFilter:
         self._Q2[_P, _V] = self._Q2[_V, _P] = 0.5 * sa2 * I3
         self._Q3 = np.zeros((CORE, CORE))
         self._Q3[_P, _P] = sa2 / 3.0 * I3
-        self._Phi = np.eye(CORE)
+        self._Phi = np.eye(self._base)
         self._W = np.zeros((3, 9))
         self._phi_p_scale = np.repeat([-0.5, -0.5, 1.0 / 6.0], 3)  # times dt: Phi = I + F dt + F^2 dt^2/2 + F^3 dt^3/6
         self._phi_v_scale = np.repeat([-1.0, -1.0, 0.5], 3)
@@ -421,7 +452,8 @@ class LocalReferenceFilter:
         return self._Pbuf[:CORE, :CORE].copy()
 
     def full_covariance(self) -> np.ndarray:
-        """Core and clone covariance, ``15 + 6 n`` square (clones ``[dtheta_c, dp_c]`` in :attr:`clone_ids` order)."""
+        """Core, consider (``k``, when modelled) and clone covariance, ``15 (+ 2) + 6 n``
+        square (clones ``[dtheta_c, dp_c]`` in :attr:`clone_ids` order)."""
         d = self._dim
         return self._Pbuf[:d, :d].copy()
 
@@ -462,7 +494,7 @@ class LocalReferenceFilter:
 
     @property
     def _dim(self) -> int:
-        return CORE + CLONE * len(self._clone_ids)
+        return self._base + CLONE * len(self._clone_ids)
 
     def _clone_index(self, clone_id: int) -> int:
         try:
@@ -529,17 +561,23 @@ class LocalReferenceFilter:
         Phi[_P, 6:15] = W * (dt * self._phi_p_scale)
         Phi[_V, 6:15] = W * self._phi_v_scale
         Phi[_TH, _BW] = -W[:, 3:6]
+        b = self._base
+        if b > CORE:  # k: the z axis senses k . f_xy, entering like the bias's z component
+            f_xy = 0.5 * (f0[:2] + f1[:2]) - ba[:2]
+            Phi[_P, _K] = np.outer(Phi[_P, 11], f_xy)
+            Phi[_V, _K] = np.outer(Phi[_V, 11], f_xy)
         P = self._Pbuf
-        P[:CORE, :CORE] = Phi @ P[:CORE, :CORE] @ Phi.T + self._process_noise(dt)
+        P[:b, :b] = Phi @ P[:b, :b] @ Phi.T
+        P[:CORE, :CORE] += self._process_noise(dt)
         if self.params.gyro_scale_std > 0.0:  # unmodelled scale and misalignment: grows with the rate
             rate = 0.5 * (w0 + w1) - self._bw
             q = self.params.gyro_scale_std**2 * float(rate @ rate) * 2.0 * self.params.gyro_scale_correlation_s * dt
             P[_TH, _TH] += q * np.eye(3)
         d = self._dim
-        if d > CORE:
-            X = Phi @ P[:CORE, CORE:d]
-            P[:CORE, CORE:d] = X
-            P[CORE:d, :CORE] = X.T
+        if d > b:
+            X = Phi @ P[:b, b:d]
+            P[:b, b:d] = X
+            P[b:d, :b] = X.T
 
     def _process_noise(self, dt: float) -> np.ndarray:
         """``Qd = dt Q1 + dt^2 Q2 + dt^3 Q3``, cached for the IMU interval rounded to 1 ns (a
@@ -592,7 +630,7 @@ class LocalReferenceFilter:
     def _drop(self, clone_id: int) -> None:
         k = self._clone_ids.index(clone_id)
         d = self._dim
-        o = CORE + CLONE * k
+        o = self._base + CLONE * k
         keep = np.r_[0:o, o + CLONE : d]
         P = self._Pbuf
         P[: d - CLONE, : d - CLONE] = P[np.ix_(keep, keep)]
@@ -648,7 +686,7 @@ class LocalReferenceFilter:
         Rk, pk, Rc, pc = self._cR[k], self._cp[k], self._cR[c], self._cp[c]
         R_pred = Rk.T @ Rc
         p_pred = Rk.T @ (pc - pk)
-        ok, oc = CORE + CLONE * k, CORE + CLONE * c
+        ok, oc = self._base + CLONE * k, self._base + CLONE * c
         idx = np.r_[ok : ok + CLONE, oc : oc + CLONE]
         RcT = Rc.T
         H = np.zeros((6, 12))
@@ -797,6 +835,8 @@ class LocalReferenceFilter:
         dx = PHt @ sol[:, 0]
         P -= PHt @ sol[:, 1:]
         P[:] = 0.5 * (P + P.T)
+        if self._base > CORE:  # Schmidt: the consider parameters keep their prior (and their estimate 0)
+            P[_K, _K] = self._Pkk
         self._p = self._p + dx[_P]
         self._v = self._v + dx[_V]
         self._R = so3_exp(dx[_TH]) @ self._R
@@ -804,7 +844,7 @@ class LocalReferenceFilter:
         self._bw = self._bw + dx[_BW]
         n = len(self._clone_ids)
         if n:
-            D = dx[CORE:].reshape(n, CLONE)
+            D = dx[self._base :].reshape(n, CLONE)
             self._cR[:n] = so3_exp_batch(D[:, 0:3]) @ self._cR[:n]
             self._cp[:n] += D[:, 3:6]
         return nis
@@ -840,11 +880,11 @@ class LocalReferenceFilter:
         J[_V, _V] = RzT
         J[_V, _TH] = np.outer(np.cross(v_new, e3), j_yaw)
         J[_TH, _TH] = RzT - np.outer(e3, j_yaw)
-        J[9:15, 9:15] = np.eye(6)
+        J[9 : self._base, 9 : self._base] = np.eye(self._base - 9)
         n = len(self._clone_ids)
         pc_all = (self._cp[:n] - p0) @ Rz  # rows: Rz^T (p_c - p)
         for k in range(n):
-            o = CORE + CLONE * k
+            o = self._base + CLONE * k
             pc_new = pc_all[k]
             J[o : o + 3, o : o + 3] = RzT
             J[o : o + 3, _TH] = -np.outer(e3, j_yaw)

@@ -20,7 +20,8 @@ GVEC = np.array([0.0, 0.0, -G])
 RATE = 200.0  # IMU, Hz
 DT = 1.0 / RATE
 
-# Xsens MTi-10 class (sim.world.sensors.XSENS_MTI_10): densities and bias walks
+# Xsens MTi-10 class (sim.world.sensors.XSENS_MTI_10): densities and bias walks; the IMU
+# of noisy_imu is perfectly aligned, so the filter holds no misalignment consider parameters
 PARAMS = FilterParams(
     gyro_noise_density=math.radians(0.03),
     accel_noise_density=80e-6 * 9.80665,
@@ -31,7 +32,9 @@ PARAMS = FilterParams(
     initial_accel_bias_std=0.03,
     initial_gyro_bias_std=math.radians(0.3),
     gravity=G,
+    accel_misalignment_std=0.0,
 )
+MISALIGNMENT_STD = math.radians(0.3)  # the z axis's lean towards x and y in the misaligned-IMU tests
 
 
 # --------------------------------------------------------------------------- closed-form trajectories
@@ -460,11 +463,14 @@ def test_frame_switch_covariance_matches_monte_carlo():
     tr = wiggly(8.0)
     rng = np.random.default_rng(2)
     imu = noisy_imu(tr, PARAMS, rng)
-    # stop the VO with two clones held and let the uncertainty grow a little
-    f, *_ = run(tr, imu, delay=100)  # deltas of the last 0.5 s still pending: clones held
+    # stop the VO with two clones held and let the uncertainty grow a little; with the
+    # misalignment's consider parameters between core and clones, which keep theirs
+    f, *_ = run(tr, imu, replace(PARAMS, accel_misalignment_std=MISALIGNMENT_STD), delay=100)  # deltas of the last 0.5 s pending
     ids = f.clone_ids
     assert len(ids) >= 3
     P = f.full_covariance()
+    base = P.shape[0] - 6 * len(ids)  # 15 core + 2 consider
+    assert base == 17
     R, p, v = f.pose()[:3, :3], f.pose()[:3, 3], f.velocity()
     clones = [f.clone_pose(i) for i in ids]
     f.frame_switch()
@@ -484,9 +490,9 @@ def test_frame_switch_covariance_matches_monte_carlo():
         e = np.zeros(P.shape[0])
         e[3:6] = RzT @ vt - vn
         e[6:9] = so3_log(RzT @ Rt @ Rn.T)
-        e[9:15] = d[9:15]
+        e[9:base] = d[9:base]
         for k, (Tc, Tcn) in enumerate(zip(clones, clones_n)):
-            o = 15 + 6 * k
+            o = base + 6 * k
             Rct, pct = so3_exp(d[o : o + 3]) @ Tc[:3, :3], Tc[:3, 3] + d[o + 3 : o + 6]
             e[o : o + 3] = so3_log(RzT @ Rct @ Tcn[:3, :3].T)
             e[o + 3 : o + 6] = RzT @ (pct - pt) - Tcn[:3, 3]
@@ -669,6 +675,35 @@ def test_nees_of_roll_pitch_and_velocity_within_chi_square_bounds():
         inside = np.mean((avg > lo) & (avg < hi))
         assert inside >= 0.85, (inside, avg)
         assert 0.8 * 5 < avg.mean() < 1.2 * 5, avg.mean()
+
+
+def test_misaligned_accelerometer_is_held_by_the_consider_parameters():
+    """An IMU whose z axis leans towards x and y by ``k`` (drawn per run, 0.3 deg std) on a
+    tilting flight: gravity sees ``g k sin(tilt)`` as a tilt error. Without the consider
+    parameters the filter is sure of a wrong roll and pitch (NEES far above its 2 dof);
+    with them (Schmidt-Kalman, the same std) roll and pitch are consistent, and the
+    5-dof NEES with the velocity too."""
+    runs, dur = 12, 20.0
+    tr = wiggly(dur)
+    ks = tuple(range(400, len(tr.t), 200))
+    held = replace(PARAMS, accel_misalignment_std=MISALIGNMENT_STD)
+    nees = {}
+    for label, params in (("blind", PARAMS), ("held", held)):
+        rp, full = np.zeros((runs, len(ks))), np.zeros((runs, len(ks)))
+        for r in range(runs):
+            rng = np.random.default_rng(100 + r)
+            imu = noisy_imu(tr, PARAMS, rng)
+            imu.f[:, 2] += tr.f[:, :2] @ rng.normal(0, MISALIGNMENT_STD, 2)
+            init = rng.normal(0, PARAMS.initial_roll_pitch_std, 2)
+            f, _, _, res = run(tr, imu, params, rng_seed=200 + r, init_error=tuple(init), switch_at=(1500,), checkpoints=ks)
+            for i, (_, _, eo, Po) in enumerate(res):
+                rp[r, i] = eo[:2] @ np.linalg.solve(Po[:2, :2], eo[:2])
+                full[r, i] = eo @ np.linalg.solve(Po, eo)
+        nees[label] = (rp.mean(), full.mean(), rp[:, -5:].mean())
+    (rp_blind, full_blind, late_blind), (rp_held, full_held, late_held) = nees["blind"], nees["held"]
+    assert rp_blind > 3 * 2 and late_blind > 5 * 2 and full_blind > 2.5 * 5, nees
+    assert 0.5 * 2 < rp_held < 1.3 * 2 and late_held < 1.5 * 2 and 0.5 * 5 < full_held < 1.3 * 5, nees
+    assert f.full_covariance().shape[0] == 17 + 6 * len(f.clone_ids)  # the layout of full_covariance
 
 
 def test_biases_converge_given_relative_pose_updates():

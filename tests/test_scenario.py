@@ -116,7 +116,8 @@ def test_slam_keys_take_slam_defaults_and_units():
     assert HealthParams(**slam_kwargs(HealthParams, HealthConfig())) == HealthParams()
     assert RestParams(**slam_kwargs(RestParams, SlamConfig())) == RestParams()
     assert VoParams(**slam_kwargs(VoParams, SlamConfig())) == VoParams()
-    assert slam_kwargs(FilterParams, SlamConfig()) == {"gyro_scale_std": 0.001, "gyro_scale_correlation_s": 5.0}
+    filter_kwargs = slam_kwargs(FilterParams, SlamConfig())
+    assert filter_kwargs == {"gyro_scale_std": 0.001, "gyro_scale_correlation_s": 5.0, "accel_misalignment_std": pytest.approx(math.radians(0.05))}
     assert slam_kwargs(RestParams, SlamConfig(zero_velocity=False)) == {"zero_velocity": False}
     linked = 0
     for section in (MappingConfig, GraphConfig, DetectionConfig, MatchingConfig, SlamConfig, HealthConfig):
@@ -126,7 +127,7 @@ def test_slam_keys_take_slam_defaults_and_units():
                 assert param.degrees == key.endswith("_deg"), key
                 if isinstance(param.slam_default, Enum):  # the schema lists exactly the enum's values
                     assert typing.get_args(info.annotation) == tuple(e.value for e in type(param.slam_default)), key
-    assert linked == 47
+    assert linked == 48
     # units and enums on the way to slam
     kwargs = slam_kwargs(ObstacleParams, MappingConfig(max_slope_deg=35.0, max_depth_error_m=0.3))
     assert kwargs["max_slope_rad"] == math.radians(35.0) and kwargs["max_error_m"] == 0.3
