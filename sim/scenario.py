@@ -764,12 +764,12 @@ class SlamConfig(StrictModel):
         description="std of a disparity offset common to all VO points (rectification error) in the VO's covariance",
     )
     camera_rotation_std_deg: NonNegFloat = slam_field(
-        SlamParam(VoParams, "extrinsic_rotation_std_rad", degrees=True),
-        description="std per axis of the camera-IMU calibration's rotation, in the VO deltas' covariance",
+        SlamParam(FilterParams, "extrinsic_rotation_std", degrees=True),
+        description="std per axis of the VO camera-IMU calibration's rotation, held by the filter as consider parameters",
     )
     camera_translation_std_m: NonNegFloat = slam_field(
-        SlamParam(VoParams, "extrinsic_translation_std_m"),
-        description="std per axis of the camera-IMU calibration's translation, in the VO deltas' covariance",
+        SlamParam(FilterParams, "extrinsic_translation_std"),
+        description="std per axis of the VO camera-IMU calibration's translation, held by the filter as consider parameters",
     )
     frame_switch_distance_m: PositiveFloat = Field(
         5.0, description="without mapping only: frame switch after this distance driven in the current frame"

@@ -33,6 +33,15 @@ state's covariance holds what an unknown ``k`` of that size does to it. The gain
 for ``k`` are zero; the other rows and every other block of the update are the ordinary
 Kalman update's, since no measurement here depends on ``k`` directly.
 
+The VO camera's calibration error ``e`` (``X_true = X Exp(e)``, six entries
+``[rotation, translation]`` in the camera tangent, after ``k``) is held the same way: a
+fixed ``e`` errs every delta the same way for the same motion, which a covariance per
+delta (white noise) averages out over the deltas, and the filter became sure of a tilt
+and a vertical velocity the calibration had biased (docs/realism.md). A delta's
+sensitivity to ``e`` enters its update as columns of ``H``; the update is again the
+Kalman update of every block but the consider parameters' own (Schmidt-Kalman: with
+``K_c = 0`` the Joseph form leaves ``P_cc`` and gives the optimal ``K``'s other blocks).
+
 Conventions: local frame gravity-aligned with z up, ``g = [0, 0, -gravity]``; body x
 forward, y left, z up, IMU at the body origin; accelerometer ``f = R^T (a - g) + b_a + n``,
 gyro ``w = omega + b_w + n``.
@@ -105,10 +114,10 @@ from scipy.stats import chi2
 from slam.lie import euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_z, rot_zyx, se3, skew, so3_exp, so3_exp_batch, so3_log
 
 CORE = 15  # [dp, dv, dtheta, db_a, db_w]
-CONSIDER = 2  # [k_x, k_y]: the accelerometer's z-axis misalignment, when modelled
+MISALIGNMENT = 2  # consider [k_x, k_y]: the accelerometer's z-axis misalignment, when modelled
+EXTRINSIC = 6  # consider [rotation, translation]: the VO camera's calibration error, when modelled
 CLONE = 6  # [dtheta_c, dp_c]
 _P, _V, _TH, _BA, _BW = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
-_K = slice(CORE, CORE + CONSIDER)
 _TIME_EPS = 1e-6  # s: a clone time must match the last propagated time this closely
 _ORTHONORMALIZE_EVERY = 1000  # IMU samples between re-orthonormalisations of R
 
@@ -147,7 +156,11 @@ class FilterParams:
     looks to gravity like a roll or pitch error of ``-k`` (default: the 0.05 deg of a
     factory-calibrated MEMS part, as for the gyros). It is held as two consider
     parameters (Schmidt-Kalman filter, Schmidt 1966; Maybeck 1979, sec. 6.6; module
-    docstring), not estimated.
+    docstring), not estimated. ``extrinsic_rotation_std`` (rad) and
+    ``extrinsic_translation_std`` (m) per axis: the error ``e`` of the VO camera's
+    calibrated pose on the body, ``X_true = X Exp(e)`` (camera tangent; hand-eye
+    calibration, thesis 4.1: 0.2 deg, 5 mm), six more consider parameters that every
+    visual-odometry delta sees through its own Jacobian (:meth:`update_relative_pose`).
     """
 
     gyro_noise_density: float
@@ -168,6 +181,8 @@ class FilterParams:
     gyro_scale_std: float = 0.001
     gyro_scale_correlation_s: float = 5.0
     accel_misalignment_std: float = math.radians(0.05)
+    extrinsic_rotation_std: float = math.radians(0.2)
+    extrinsic_translation_std: float = 0.005
 
     def __post_init__(self):
         for name in ("gyro_noise_density", "accel_noise_density", "gyro_bias_random_walk", "accel_bias_random_walk"):
@@ -184,6 +199,8 @@ class FilterParams:
             "gyro_scale_std",
             "gyro_scale_correlation_s",
             "accel_misalignment_std",
+            "extrinsic_rotation_std",
+            "extrinsic_translation_std",
         ):
             if not getattr(self, name) >= 0.0:
                 raise FilterException(f"FilterParams.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -316,8 +333,7 @@ class LocalReferenceFilter:
         f = None if accel_at_rest is None else _resting_specific_force(accel_at_rest, params.gravity)
         roll, pitch = _roll_pitch_at_rest(f)
         u = None if rest_duration_s is None else _gravity_direction_at_rest(f, rest_duration_s)
-        self._base = CORE + (CONSIDER if params.accel_misalignment_std > 0.0 else 0)  # first clone entry
-        self._Pkk = np.eye(CONSIDER) * params.accel_misalignment_std**2
+        self._init_consider()
         self._init_direct_state(t0, roll, pitch, f, u, gyro_at_rest)
         self._init_clones()
         self._init_error_covariance(roll, pitch, f, u, rest_duration_s)
@@ -345,6 +361,19 @@ class LocalReferenceFilter:
         self._dt_last = 0.0
         self._steps = 0
         self._frame_index = 0
+
+    def _init_consider(self) -> None:
+        """The consider parameters' place after the core (``_k``: misalignment, ``_e``:
+        extrinsics; empty slices when not modelled), the first clone entry ``_base`` and
+        their prior covariance ``_Pcc``, which the Schmidt updates keep."""
+        params = self.params
+        nk = MISALIGNMENT if params.accel_misalignment_std > 0.0 else 0
+        ne = EXTRINSIC if max(params.extrinsic_rotation_std, params.extrinsic_translation_std) > 0.0 else 0
+        self._k = slice(CORE, CORE + nk)
+        self._e = slice(CORE + nk, CORE + nk + ne)
+        self._base = CORE + nk + ne
+        std = [params.accel_misalignment_std] * nk + ([params.extrinsic_rotation_std] * 3 + [params.extrinsic_translation_std] * 3) * (ne > 0)
+        self._Pcc = np.diag(np.square(std))
 
     def _init_clones(self) -> None:
         """No clones yet (state augmentation, eq. 4.3): ids and capture times; attitudes and
@@ -376,8 +405,7 @@ class LocalReferenceFilter:
             along = params.accel_noise_density**2 / rest_duration_s + params.accel_bias_random_walk**2 * rest_duration_s
             P0[_BA, _BA] += (along - params.initial_accel_bias_std**2) * np.outer(u, u)
         P0[_BW, _BW] = np.eye(3) * params.initial_gyro_bias_std**2
-        if self._base > CORE:
-            self._Pbuf[_K, _K] = self._Pkk
+        self._Pbuf[CORE : self._base, CORE : self._base] = self._Pcc
         if f is not None:
             T = _tilt_from_accel_bias(f, M)
             Pb = P0[_BA, _BA]
@@ -562,10 +590,10 @@ class LocalReferenceFilter:
         Phi[_V, 6:15] = W * self._phi_v_scale
         Phi[_TH, _BW] = -W[:, 3:6]
         b = self._base
-        if b > CORE:  # k: the z axis senses k . f_xy, entering like the bias's z component
+        if self._k.stop > CORE:  # k: the z axis senses k . f_xy, entering like the bias's z component
             f_xy = 0.5 * (f0[:2] + f1[:2]) - ba[:2]
-            Phi[_P, _K] = np.outer(Phi[_P, 11], f_xy)
-            Phi[_V, _K] = np.outer(Phi[_V, 11], f_xy)
+            Phi[_P, self._k] = np.outer(Phi[_P, 11], f_xy)
+            Phi[_V, self._k] = np.outer(Phi[_V, 11], f_xy)
         P = self._Pbuf
         P[:b, :b] = Phi @ P[:b, :b] @ Phi.T
         P[:CORE, :CORE] += self._process_noise(dt)
@@ -641,29 +669,41 @@ class LocalReferenceFilter:
 
     # ------------------------------------------------------------------ updates
 
-    def update_relative_pose(self, kf_clone_id: int, cur_clone_id: int, T_kf_cur: np.ndarray, cov: np.ndarray) -> float:
+    def update_relative_pose(
+        self, kf_clone_id: int, cur_clone_id: int, T_kf_cur: np.ndarray, cov: np.ndarray, extrinsic_jacobian: np.ndarray | None = None
+    ) -> float:
         """Visual-odometry delta pose ``T_kf_cur`` (body frames of the two clones) with
         6x6 covariance ``[rotation, translation]``, right perturbation. Applied as if it
         had arrived right after the later of the two clones (delay compensation, module
         docstring). Returns the squared Mahalanobis distance (NIS) of the innovation; the
         update is rejected (state unchanged) when it exceeds the chi-square gate
-        ``chi2.ppf(params.gate_probability, 6)`` (:attr:`relative_pose_gate`)."""
+        ``chi2.ppf(params.gate_probability, 6)`` (:attr:`relative_pose_gate`).
+
+        ``extrinsic_jacobian`` (6x6): how the delta errs with the camera's calibration
+        error ``e`` (``T_meas = T_true Exp(J e)``, :func:`slam.vo.extrinsic_sensitivity`);
+        where the filter holds ``e`` as consider parameters, the update accounts for it
+        through them (the same ``e`` in every delta), else it is ignored."""
         T = np.array(T_kf_cur, dtype=float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise FilterException(f"T_kf_cur must be a finite 4x4 transform, got shape {T.shape}")
         if np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() > 1e-6 or np.any(T[3] != (0.0, 0.0, 0.0, 1.0)):
             raise FilterException("T_kf_cur must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
         C = _covariance(cov, 6, "cov")
+        J = None
+        if extrinsic_jacobian is not None and self._e.stop > self._e.start:
+            J = np.array(extrinsic_jacobian, dtype=float)
+            if J.shape != (6, EXTRINSIC) or not np.all(np.isfinite(J)):
+                raise FilterException(f"extrinsic_jacobian must be a finite 6x6 matrix, got shape {J.shape}")
         if kf_clone_id == cur_clone_id:
             raise FilterException(f"a relative pose needs two different clones, got {kf_clone_id!r} twice")
         ks = [self._clone_index(kf_clone_id), self._clone_index(cur_clone_id)]
         anchor_id = cur_clone_id if self._clone_t[ks[1]] >= self._clone_t[ks[0]] else kf_clone_id
         anchor_t = max(self._clone_t[ks[0]], self._clone_t[ks[1]])
-        event = ["relpose", anchor_t, kf_clone_id, cur_clone_id, T, C]
+        event = ["relpose", anchor_t, kf_clone_id, cur_clone_id, T, C, J]
         anchor = self._clone_event.get(anchor_id)
         replayable = anchor is not None and anchor[1] == anchor_t and {kf_clone_id, cur_clone_id} <= set(anchor[3].clone_ids)
         if anchor_t == self._t or not replayable:
-            nis = self._relpose(kf_clone_id, cur_clone_id, T, C)  # in time, or stochastic cloning only
+            nis = self._relpose(kf_clone_id, cur_clone_id, T, C, J)  # in time, or stochastic cloning only
             if self._log:
                 self._log.append(event)
             return nis
@@ -699,9 +739,11 @@ class LocalReferenceFilter:
         H[3:6, 9:12] = RcT
         return se3(R_pred, p_pred), (R_pred, p_pred), idx, H
 
-    def _relpose(self, kf_id: int, cur_id: int, T: np.ndarray, C: np.ndarray) -> float:
+    def _relpose(self, kf_id: int, cur_id: int, T: np.ndarray, C: np.ndarray, J: np.ndarray | None) -> float:
         _, (R_pred, p_pred), idx, H = self._relative_pose_model(kf_id, cur_id)
         r = np.concatenate([so3_log(R_pred.T @ T[:3, :3]), R_pred.T @ (T[:3, 3] - p_pred)])
+        if J is not None:
+            idx, H = np.r_[idx, self._e.start : self._e.stop], np.hstack([H, J])
         return self._update(idx, H, r, C, self.relative_pose_gate)
 
     def update_body_velocity(self, v_body: np.ndarray, cov: np.ndarray, yaw_rate: float | None = None, yaw_rate_var: float | None = None) -> float:
@@ -835,8 +877,7 @@ class LocalReferenceFilter:
         dx = PHt @ sol[:, 0]
         P -= PHt @ sol[:, 1:]
         P[:] = 0.5 * (P + P.T)
-        if self._base > CORE:  # Schmidt: the consider parameters keep their prior (and their estimate 0)
-            P[_K, _K] = self._Pkk
+        P[CORE : self._base, CORE : self._base] = self._Pcc  # Schmidt: the consider parameters keep their prior (and their estimate 0)
         self._p = self._p + dx[_P]
         self._v = self._v + dx[_V]
         self._R = so3_exp(dx[_TH]) @ self._R
@@ -959,7 +1000,7 @@ class LocalReferenceFilter:
             elif kind == "drop":
                 self._drop(event[2])
             elif kind == "relpose":
-                value = self._relpose(*event[2:6])
+                value = self._relpose(*event[2:7])
                 if event is watch:
                     nis = value
             elif kind == "vel":

@@ -32,7 +32,7 @@ from slam.filter import FilterParams, LocalReferenceFilter
 from slam.health import Health, HealthParams, HealthState
 from slam.lie import se3_inv, so3_log
 from slam.rest import RestDetector, RestParams, RestStats, chi2_3
-from slam.vo import StereoVO, VoResult, delta_in_body_frame
+from slam.vo import StereoVO, VoResult, delta_in_body_frame, extrinsic_sensitivity
 
 
 class EstimatorException(Exception):
@@ -150,8 +150,6 @@ class LocalEstimator:
         self.health_history: list[tuple[float, str, str]] = []
         self._last_zupt_t = -math.inf
         self._vo_trouble: tuple[str, str] | None = None  # the latest VO outcome since the last applied delta
-        self._extrinsic_cov = None if vo is None else np.diag(
-            [vo.params.extrinsic_rotation_std_rad**2] * 3 + [vo.params.extrinsic_translation_std_m**2] * 3)
 
     @property
     def initialised(self) -> bool:
@@ -260,11 +258,11 @@ class LocalEstimator:
             stats.ok += 1
             kf = result.keyframe_id
             if kf != result.frame_id and kf in self._T_body_cam and result.frame_id in self._T_body_cam:
-                T_b, cov_b = delta_in_body_frame(
-                    result.T_kf_cur, result.cov, self._T_body_cam[kf], self._T_body_cam[result.frame_id], self._extrinsic_cov
-                )
+                X_cur = self._T_body_cam[result.frame_id]
+                T_b, cov_b = delta_in_body_frame(result.T_kf_cur, result.cov, self._T_body_cam[kf], X_cur)
                 cov_b = 0.5 * (cov_b + cov_b.T)
-                applied = self.filter.update_relative_pose(kf, result.frame_id, T_b, cov_b)
+                J = extrinsic_sensitivity(result.T_kf_cur, X_cur)
+                applied = self.filter.update_relative_pose(kf, result.frame_id, T_b, cov_b, extrinsic_jacobian=J)
                 if applied > self.filter.relative_pose_gate:
                     stats.reject("gate")
                     self._vo_trouble = ("vo rejected", "gate")

@@ -27,9 +27,9 @@ What it does per stereo pair
    propagated measurement noise" of 4.1.1), not from a constant. Pixel noise averages
    out over the points; a calibration error does not. So the covariance also holds the
    rig's calibration uncertainty as consider parameters (our addition): a disparity
-   offset common to all points (:func:`disparity_bias_sensitivity`) here, and the
-   camera-IMU extrinsics where the delta goes to the body frame
-   (:func:`delta_in_body_frame`).
+   offset common to all points (:func:`disparity_bias_sensitivity`) here; the camera-IMU
+   extrinsics' error, the same for every delta, the filter holds as consider parameters
+   through each delta's sensitivity (:func:`extrinsic_sensitivity`).
 5. Keyframe policy: a history of ``n_keyframes`` (thesis 4.1.1: n = 5). The current
    frame becomes a keyframe when the inliers fall below a share of the keyframe's
    points or a minimum count, when the motion since the keyframe exceeds a translation
@@ -126,21 +126,18 @@ class VoParams:
     keyframe_max_rotation_deg: float = 10.0
     # noise (thesis 5.1.1: 0.5 px)
     pixel_noise_px: float = DEFAULT_PIXEL_ERROR
-    # calibration uncertainty (consider parameters, :func:`disparity_bias_sensitivity` and
-    # :func:`delta_in_body_frame`): a disparity offset common to all points (0.25 px: a
-    # rectification yaw of 0.04 deg at the LRU's 338 px focal length) and the camera-IMU
-    # calibration's rotation and translation (0.2 deg, 5 mm; hand-eye calibration, thesis 4.1)
+    # calibration uncertainty (a consider parameter, :func:`disparity_bias_sensitivity`): a
+    # disparity offset common to all points (0.25 px: a rectification yaw of 0.04 deg at the
+    # LRU's 338 px focal length); the camera-IMU calibration's is the filter's
+    # (slam.filter.FilterParams.extrinsic_rotation_std, :func:`extrinsic_sensitivity`)
     disparity_bias_px: float = 0.25
-    extrinsic_rotation_std_rad: float = math.radians(0.2)
-    extrinsic_translation_std_m: float = 0.005
 
     def __post_init__(self):
         positive = ("max_features", "grid_cols", "grid_rows", "min_features", "max_point_error_m", "klt_window_px",
                     "klt_fb_max_px", "ransac_threshold_px", "ransac_iterations", "refine_iterations",
                     "inlier_chi2", "min_inliers", "n_keyframes", "pixel_noise_px")
         bad = [f"{k}={getattr(self, k)}" for k in positive if not getattr(self, k) > 0]
-        bad += [f"{k}={getattr(self, k)}" for k in ("disparity_bias_px", "extrinsic_rotation_std_rad", "extrinsic_translation_std_m")
-                if not getattr(self, k) >= 0]
+        bad += [f"disparity_bias_px={self.disparity_bias_px}"] if not self.disparity_bias_px >= 0 else []
         if bad:
             raise VoException(f"VoParams must be positive: {', '.join(bad)}")
         if self.min_inliers < 4:
@@ -196,30 +193,29 @@ class _Measurement:
 
 
 def delta_in_body_frame(
-    T_kf_cur: np.ndarray,
-    cov: np.ndarray,
-    T_body_cam_kf: np.ndarray,
-    T_body_cam_cur: np.ndarray | None = None,
-    extrinsic_cov: np.ndarray | None = None,
+    T_kf_cur: np.ndarray, cov: np.ndarray, T_body_cam_kf: np.ndarray, T_body_cam_cur: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """A camera delta as the delta of the body frames it was mounted on (e.g. the filter's
     IMU frame): ``T_b = X_kf T_kf_cur X_cur^-1`` with the camera extrinsics ``X`` (4x4
     ``T_body_cam`` at the keyframe's and at the current capture; they differ on a
     moving pan-tilt head). With ``T = T_hat Exp(xi)``, ``T_b = T_b_hat Exp(Ad_{X_cur} xi)``,
-    so the covariance becomes ``Ad cov Ad^T`` in the same right-perturbation convention.
-
-    ``extrinsic_cov`` (6x6, camera tangent): the uncertainty of the calibrated ``X``, a
-    fixed error ``X_true = X Exp(e)`` at both captures. The body delta is then that of
-    the camera delta ``Exp(e) T Exp(-e) = T Exp((Ad_{T^-1} - I) e)`` to first order, so
-    ``A Σ_e A^T`` with ``A = Ad_{T^-1} - I`` joins ``cov`` (a consider parameter: it
-    grows with the delta's rotation and translation and vanishes for no motion)."""
+    so the covariance becomes ``Ad cov Ad^T`` in the same right-perturbation convention."""
     X_kf = np.asarray(T_body_cam_kf, dtype=float)
     X_cur = X_kf if T_body_cam_cur is None else np.asarray(T_body_cam_cur, dtype=float)
-    if extrinsic_cov is not None:
-        A = adjoint(np.linalg.inv(T_kf_cur)) - np.eye(6)
-        cov = cov + A @ extrinsic_cov @ A.T
     Ad = adjoint(X_cur)
     return X_kf @ T_kf_cur @ np.linalg.inv(X_cur), Ad @ cov @ Ad.T
+
+
+def extrinsic_sensitivity(T_kf_cur: np.ndarray, T_body_cam: np.ndarray) -> np.ndarray:
+    """How the body delta of :func:`delta_in_body_frame` errs with a fixed error ``e`` of
+    the calibrated camera pose ``X_true = X Exp(e)`` (6, ``[rotation, translation]``, camera
+    tangent): ``T_b = T_b_true Exp(J e)`` to first order, ``J = -Ad_X (Ad_{T^-1} - I)``
+    (6x6). The true body delta is that of ``Exp(e) T Exp(-e) = T Exp((Ad_{T^-1} - I) e)``;
+    ``J`` grows with the delta's rotation and translation and vanishes for no motion. The
+    filter holds ``e`` as consider parameters (slam.filter, module docstring): one error
+    for all deltas, where a covariance per delta would average it out."""
+    A = adjoint(np.linalg.inv(np.asarray(T_kf_cur, dtype=float))) - np.eye(6)
+    return -adjoint(np.asarray(T_body_cam, dtype=float)) @ A
 
 
 def stereo_point_covariance(X: np.ndarray, calib: StereoCalibration, pixel_error: float = DEFAULT_PIXEL_ERROR) -> np.ndarray:

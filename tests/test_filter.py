@@ -14,6 +14,7 @@ from scipy.stats import chi2
 
 from slam.filter import FilterException, FilterParams, LocalReferenceFilter, switch_pose3_covariance
 from slam.lie import euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_zyx, se3, se3_inv, skew, so3_exp, so3_exp_batch, so3_log, wrap_angle
+from slam.vo import extrinsic_sensitivity
 
 G = 9.81
 GVEC = np.array([0.0, 0.0, -G])
@@ -21,7 +22,8 @@ RATE = 200.0  # IMU, Hz
 DT = 1.0 / RATE
 
 # Xsens MTi-10 class (sim.world.sensors.XSENS_MTI_10): densities and bias walks; the IMU
-# of noisy_imu is perfectly aligned, so the filter holds no misalignment consider parameters
+# of noisy_imu is perfectly aligned and the deltas come from the truth, so the filter holds
+# no consider parameters
 PARAMS = FilterParams(
     gyro_noise_density=math.radians(0.03),
     accel_noise_density=80e-6 * 9.80665,
@@ -33,6 +35,8 @@ PARAMS = FilterParams(
     initial_gyro_bias_std=math.radians(0.3),
     gravity=G,
     accel_misalignment_std=0.0,
+    extrinsic_rotation_std=0.0,
+    extrinsic_translation_std=0.0,
 )
 MISALIGNMENT_STD = math.radians(0.3)  # the z axis's lean towards x and y in the misaligned-IMU tests
 
@@ -166,12 +170,16 @@ def run(
     rng_seed: int = 7,
     init_error=(0.0, 0.0),
     checkpoints=(),
+    camera=None,
 ):
     """Feed a filter: IMU every sample; at every ``vo_every``-th sample a clone and a delta
     to the current keyframe (every ``kf_every``-th image is a keyframe) arriving ``delay``
     samples later (pairs in ``swap_images`` arrive in reverse order); wheel velocities
     (body frame, with v_z = 0 constraint) and zero-velocity updates (``zupt_mean``: with the
-    mean gyro since the last one and a gate, as slam.local_estimator applies them). Returns the filter,
+    mean gyro since the last one and a gate, as slam.local_estimator applies them). With
+    ``camera = (X, e)`` the deltas are those of a camera at ``X Exp(e)`` on the body, turned
+    into body deltas with the believed ``X`` and passed with their extrinsic Jacobian, as
+    slam.local_estimator does. Returns the filter,
     the NIS per image, the frame switches, and ``checkpoint(k, filter)`` results."""
     rng = np.random.default_rng(rng_seed)
     f_meas = truth.f if imu is None else imu.f
@@ -207,7 +215,13 @@ def run(
                 deltas[j] = (kf, T)
         for j in arrivals.get(k, []):
             cur_kf, T = deltas[j]
-            nis[j] = filt.update_relative_pose(cur_kf, j, T, VO_COV)
+            J = None
+            if camera is not None:
+                X, e = camera
+                E = se3(so3_exp(e[:3]), e[3:])
+                T_cam = np.linalg.inv(X @ E) @ T @ X @ E  # what the camera saw
+                T, J = X @ T_cam @ np.linalg.inv(X), extrinsic_sensitivity(T_cam, X)
+            nis[j] = filt.update_relative_pose(cur_kf, j, T, VO_COV, extrinsic_jacobian=J)
             if j % kf_every == 0:  # j became a keyframe: its predecessor is no longer referenced
                 if j - kf_every in filt.clone_ids:
                     filt.drop_clone(j - kf_every)
@@ -464,13 +478,14 @@ def test_frame_switch_covariance_matches_monte_carlo():
     rng = np.random.default_rng(2)
     imu = noisy_imu(tr, PARAMS, rng)
     # stop the VO with two clones held and let the uncertainty grow a little; with the
-    # misalignment's consider parameters between core and clones, which keep theirs
-    f, *_ = run(tr, imu, replace(PARAMS, accel_misalignment_std=MISALIGNMENT_STD), delay=100)  # deltas of the last 0.5 s pending
+    # consider parameters between core and clones, which keep theirs
+    considered = replace(PARAMS, accel_misalignment_std=MISALIGNMENT_STD, extrinsic_rotation_std=0.003, extrinsic_translation_std=0.005)
+    f, *_ = run(tr, imu, considered, delay=100)  # deltas of the last 0.5 s pending
     ids = f.clone_ids
     assert len(ids) >= 3
     P = f.full_covariance()
-    base = P.shape[0] - 6 * len(ids)  # 15 core + 2 consider
-    assert base == 17
+    base = P.shape[0] - 6 * len(ids)  # 15 core + 2 misalignment + 6 extrinsic
+    assert base == 23
     R, p, v = f.pose()[:3, :3], f.pose()[:3, 3], f.velocity()
     clones = [f.clone_pose(i) for i in ids]
     f.frame_switch()
@@ -704,6 +719,32 @@ def test_misaligned_accelerometer_is_held_by_the_consider_parameters():
     assert rp_blind > 3 * 2 and late_blind > 5 * 2 and full_blind > 2.5 * 5, nees
     assert 0.5 * 2 < rp_held < 1.3 * 2 and late_held < 1.5 * 2 and 0.5 * 5 < full_held < 1.3 * 5, nees
     assert f.full_covariance().shape[0] == 17 + 6 * len(f.clone_ids)  # the layout of full_covariance
+
+
+def test_camera_calibration_error_is_held_by_the_consider_parameters():
+    """VO deltas of a camera whose calibrated pose on the body is off by ``e`` (drawn per
+    run: 0.5 deg, 1 cm): every delta errs the same way for the same motion. Without the
+    extrinsic consider parameters the filter is sure of a biased tilt and velocity (NEES
+    far above its 5 dof); with them (Schmidt-Kalman, the same std) it is consistent."""
+    runs, dur = 12, 20.0
+    tr = wiggly(dur)
+    ks = tuple(range(400, len(tr.t), 200))
+    X = se3(rot_zyx(-math.pi / 2 - 0.3, 0.0, -math.pi / 2), [0.2, 0.0, 0.8])  # a mast camera looking ahead, tilted down
+    std = np.array([math.radians(0.5)] * 3 + [0.01] * 3)
+    held = replace(PARAMS, extrinsic_rotation_std=std[0], extrinsic_translation_std=std[3])
+    nees = {}
+    for label, params in (("blind", PARAMS), ("held", held)):
+        full = np.zeros((runs, len(ks)))
+        for r in range(runs):
+            rng = np.random.default_rng(300 + r)
+            imu = noisy_imu(tr, PARAMS, rng)
+            e = rng.normal(0.0, std)
+            init = rng.normal(0, PARAMS.initial_roll_pitch_std, 2)
+            *_, res = run(tr, imu, params, rng_seed=400 + r, init_error=tuple(init), checkpoints=ks, camera=(X, e))
+            for i, (_, _, eo, Po) in enumerate(res):
+                full[r, i] = eo @ np.linalg.solve(Po, eo)
+        nees[label] = full.mean()
+    assert nees["blind"] > 2.5 * 5 and 0.6 * 5 < nees["held"] < 1.3 * 5, nees
 
 
 def test_biases_converge_given_relative_pose_updates():

@@ -132,7 +132,8 @@ def noisy_imu(truth: Truth, spec: ImuSpec, rng: np.random.Generator, accel_vibra
 
 
 def filter_params(spec: ImuSpec) -> FilterParams:
-    """As sim.run.onboard.filter_params: the datasheet values the robot knows."""
+    """As sim.run.onboard.filter_params: the datasheet values the robot knows; no consider
+    parameters, since this file's IMU is aligned and its VO deltas come from the truth."""
     return FilterParams(
         initial_roll_pitch_std=math.radians(0.2),
         gyro_noise_density=spec.gyro_noise_density,
@@ -142,6 +143,9 @@ def filter_params(spec: ImuSpec) -> FilterParams:
         initial_accel_bias_std=spec.accel_bias_initial_std,
         initial_gyro_bias_std=spec.gyro_bias_initial_std,
         gravity=G,
+        accel_misalignment_std=0.0,
+        extrinsic_rotation_std=0.0,
+        extrinsic_translation_std=0.0,
     )
 
 
@@ -317,7 +321,7 @@ class NoImages:
     """Stands in for slam.vo.StereoVO where the test hands in VO results itself (from
     the truth: no calibration error to allow for)."""
 
-    params = VoParams(extrinsic_rotation_std_rad=0.0, extrinsic_translation_std_m=0.0)
+    params = VoParams()
 
 
 class VoFeed:

@@ -117,7 +117,13 @@ def test_slam_keys_take_slam_defaults_and_units():
     assert RestParams(**slam_kwargs(RestParams, SlamConfig())) == RestParams()
     assert VoParams(**slam_kwargs(VoParams, SlamConfig())) == VoParams()
     filter_kwargs = slam_kwargs(FilterParams, SlamConfig())
-    assert filter_kwargs == {"gyro_scale_std": 0.001, "gyro_scale_correlation_s": 5.0, "accel_misalignment_std": pytest.approx(math.radians(0.05))}
+    assert filter_kwargs == {
+        "gyro_scale_std": 0.001,
+        "gyro_scale_correlation_s": 5.0,
+        "accel_misalignment_std": pytest.approx(math.radians(0.05)),
+        "extrinsic_rotation_std": pytest.approx(math.radians(0.2)),
+        "extrinsic_translation_std": 0.005,
+    }
     assert slam_kwargs(RestParams, SlamConfig(zero_velocity=False)) == {"zero_velocity": False}
     linked = 0
     for section in (MappingConfig, GraphConfig, DetectionConfig, MatchingConfig, SlamConfig, HealthConfig):
@@ -132,7 +138,7 @@ def test_slam_keys_take_slam_defaults_and_units():
     kwargs = slam_kwargs(ObstacleParams, MappingConfig(max_slope_deg=35.0, max_depth_error_m=0.3))
     assert kwargs["max_slope_rad"] == math.radians(35.0) and kwargs["max_error_m"] == 0.3
     assert slam_kwargs(SubmapParams, MappingConfig(max_depth_error_m=0.3))["max_depth_error_m"] == 0.3
-    assert slam_kwargs(VoParams, SlamConfig(camera_rotation_std_deg=0.5))["extrinsic_rotation_std_rad"] == math.radians(0.5)
+    assert slam_kwargs(FilterParams, SlamConfig(camera_rotation_std_deg=0.5))["extrinsic_rotation_std"] == math.radians(0.5)
     agent = slam_kwargs(AgentParams, GraphConfig(pose_buffer_s=60), DetectionConfig(uncertainty="lut", max_tilt_deg=45))
     assert agent["uncertainty"] is UncertaintyModel.LUT and agent["buffer_horizon_s"] == 60
     assert agent["max_target_tilt_rad"] == math.radians(45)
