@@ -51,7 +51,6 @@ from slam.navigation.exploration import ExplorationParams
 from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.submap import SubmapParams
-from slam.vo import VoParams
 
 NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
 
@@ -760,8 +759,8 @@ class SlamConfig(StrictModel):
         description="std of the accelerometer z axis's lean towards x and y, held by the filter as consider parameters (0: none)",
     )
     vo_disparity_bias_px: NonNegFloat = slam_field(
-        SlamParam(VoParams, "disparity_bias_px"),
-        description="std of a disparity offset common to all VO points (rectification error) in the VO's covariance",
+        SlamParam(FilterParams, "disparity_bias_std"),
+        description="std of a disparity offset common to all VO points (rectification error), held by the filter as a consider parameter",
     )
     camera_rotation_std_deg: NonNegFloat = slam_field(
         SlamParam(FilterParams, "extrinsic_rotation_std", degrees=True),

@@ -34,8 +34,9 @@ for ``k`` are zero; the other rows and every other block of the update are the o
 Kalman update's, since no measurement here depends on ``k`` directly.
 
 The VO camera's calibration error ``e`` (``X_true = X Exp(e)``, six entries
-``[rotation, translation]`` in the camera tangent, after ``k``) is held the same way: a
-fixed ``e`` errs every delta the same way for the same motion, which a covariance per
+``[rotation, translation]`` in the camera tangent, after ``k``) and the VO rig's
+disparity offset (one entry, after ``e``) are held the same way: a
+fixed error errs every delta the same way for the same motion, which a covariance per
 delta (white noise) averages out over the deltas, and the filter became sure of a tilt
 and a vertical velocity the calibration had biased (docs/realism.md). A delta's
 sensitivity to ``e`` enters its update as columns of ``H``; the update is again the
@@ -116,6 +117,7 @@ from slam.lie import euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_
 CORE = 15  # [dp, dv, dtheta, db_a, db_w]
 MISALIGNMENT = 2  # consider [k_x, k_y]: the accelerometer's z-axis misalignment, when modelled
 EXTRINSIC = 6  # consider [rotation, translation]: the VO camera's calibration error, when modelled
+DISPARITY = 1  # consider: the VO rig's disparity offset (px), when modelled
 CLONE = 6  # [dtheta_c, dp_c]
 _P, _V, _TH, _BA, _BW = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
 _TIME_EPS = 1e-6  # s: a clone time must match the last propagated time this closely
@@ -161,6 +163,9 @@ class FilterParams:
     calibrated pose on the body, ``X_true = X Exp(e)`` (camera tangent; hand-eye
     calibration, thesis 4.1: 0.2 deg, 5 mm), six more consider parameters that every
     visual-odometry delta sees through its own Jacobian (:meth:`update_relative_pose`).
+    ``disparity_bias_std`` (px): a disparity offset common to all points of the VO rig (a
+    residual yaw of the rectified pair; 0.25 px: 0.04 deg at the LRU's 338 px focal
+    length), one more consider parameter, seen through each delta's sensitivity.
     """
 
     gyro_noise_density: float
@@ -183,6 +188,7 @@ class FilterParams:
     accel_misalignment_std: float = math.radians(0.05)
     extrinsic_rotation_std: float = math.radians(0.2)
     extrinsic_translation_std: float = 0.005
+    disparity_bias_std: float = 0.25
 
     def __post_init__(self):
         for name in ("gyro_noise_density", "accel_noise_density", "gyro_bias_random_walk", "accel_bias_random_walk"):
@@ -201,6 +207,7 @@ class FilterParams:
             "accel_misalignment_std",
             "extrinsic_rotation_std",
             "extrinsic_translation_std",
+            "disparity_bias_std",
         ):
             if not getattr(self, name) >= 0.0:
                 raise FilterException(f"FilterParams.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -364,15 +371,19 @@ class LocalReferenceFilter:
 
     def _init_consider(self) -> None:
         """The consider parameters' place after the core (``_k``: misalignment, ``_e``:
-        extrinsics; empty slices when not modelled), the first clone entry ``_base`` and
-        their prior covariance ``_Pcc``, which the Schmidt updates keep."""
+        extrinsics, ``_d``: disparity offset; empty slices when not modelled), the first
+        clone entry ``_base`` and their prior covariance ``_Pcc``, which the Schmidt updates
+        keep."""
         params = self.params
         nk = MISALIGNMENT if params.accel_misalignment_std > 0.0 else 0
         ne = EXTRINSIC if max(params.extrinsic_rotation_std, params.extrinsic_translation_std) > 0.0 else 0
         self._k = slice(CORE, CORE + nk)
         self._e = slice(CORE + nk, CORE + nk + ne)
-        self._base = CORE + nk + ne
+        nd = DISPARITY if params.disparity_bias_std > 0.0 else 0
+        self._d = slice(CORE + nk + ne, CORE + nk + ne + nd)
+        self._base = CORE + nk + ne + nd
         std = [params.accel_misalignment_std] * nk + ([params.extrinsic_rotation_std] * 3 + [params.extrinsic_translation_std] * 3) * (ne > 0)
+        std += [params.disparity_bias_std] * nd
         self._Pcc = np.diag(np.square(std))
 
     def _init_clones(self) -> None:
@@ -670,7 +681,13 @@ class LocalReferenceFilter:
     # ------------------------------------------------------------------ updates
 
     def update_relative_pose(
-        self, kf_clone_id: int, cur_clone_id: int, T_kf_cur: np.ndarray, cov: np.ndarray, extrinsic_jacobian: np.ndarray | None = None
+        self,
+        kf_clone_id: int,
+        cur_clone_id: int,
+        T_kf_cur: np.ndarray,
+        cov: np.ndarray,
+        extrinsic_jacobian: np.ndarray | None = None,
+        disparity_sensitivity: np.ndarray | None = None,
     ) -> float:
         """Visual-odometry delta pose ``T_kf_cur`` (body frames of the two clones) with
         6x6 covariance ``[rotation, translation]``, right perturbation. Applied as if it
@@ -682,18 +699,16 @@ class LocalReferenceFilter:
         ``extrinsic_jacobian`` (6x6): how the delta errs with the camera's calibration
         error ``e`` (``T_meas = T_true Exp(J e)``, :func:`slam.vo.extrinsic_sensitivity`);
         where the filter holds ``e`` as consider parameters, the update accounts for it
-        through them (the same ``e`` in every delta), else it is ignored."""
+        through them (the same ``e`` in every delta), else it is ignored.
+        ``disparity_sensitivity`` (6,): the same for the rig's disparity offset, in the
+        body delta's tangent (per pixel)."""
         T = np.array(T_kf_cur, dtype=float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise FilterException(f"T_kf_cur must be a finite 4x4 transform, got shape {T.shape}")
         if np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() > 1e-6 or np.any(T[3] != (0.0, 0.0, 0.0, 1.0)):
             raise FilterException("T_kf_cur must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
         C = _covariance(cov, 6, "cov")
-        J = None
-        if extrinsic_jacobian is not None and self._e.stop > self._e.start:
-            J = np.array(extrinsic_jacobian, dtype=float)
-            if J.shape != (6, EXTRINSIC) or not np.all(np.isfinite(J)):
-                raise FilterException(f"extrinsic_jacobian must be a finite 6x6 matrix, got shape {J.shape}")
+        J = self._consider_jacobian(extrinsic_jacobian, disparity_sensitivity)
         if kf_clone_id == cur_clone_id:
             raise FilterException(f"a relative pose needs two different clones, got {kf_clone_id!r} twice")
         ks = [self._clone_index(kf_clone_id), self._clone_index(cur_clone_id)]
@@ -713,6 +728,22 @@ class LocalReferenceFilter:
             j += 1
         self._log.insert(j, event)
         return self._replay_from(i, event)
+
+    def _consider_jacobian(self, extrinsic_jacobian, disparity_sensitivity) -> tuple[np.ndarray, np.ndarray] | None:
+        """The consider parameters a relative pose sees and its Jacobian over them (None: none)."""
+        idx, cols = [], []
+        for given, block, shape, name in (
+            (extrinsic_jacobian, self._e, (6, EXTRINSIC), "extrinsic_jacobian"),
+            (disparity_sensitivity, self._d, (6,), "disparity_sensitivity"),
+        ):
+            if given is None or block.stop == block.start:
+                continue
+            A = np.array(given, dtype=float)
+            if A.shape != shape or not np.all(np.isfinite(A)):
+                raise FilterException(f"{name} must be finite with shape {shape}, got {A.shape}")
+            idx.append(np.arange(block.start, block.stop))
+            cols.append(A.reshape(6, -1))
+        return (np.concatenate(idx), np.hstack(cols)) if idx else None
 
     @property
     def relative_pose_gate(self) -> float:
@@ -739,11 +770,11 @@ class LocalReferenceFilter:
         H[3:6, 9:12] = RcT
         return se3(R_pred, p_pred), (R_pred, p_pred), idx, H
 
-    def _relpose(self, kf_id: int, cur_id: int, T: np.ndarray, C: np.ndarray, J: np.ndarray | None) -> float:
+    def _relpose(self, kf_id: int, cur_id: int, T: np.ndarray, C: np.ndarray, J: tuple[np.ndarray, np.ndarray] | None) -> float:
         _, (R_pred, p_pred), idx, H = self._relative_pose_model(kf_id, cur_id)
         r = np.concatenate([so3_log(R_pred.T @ T[:3, :3]), R_pred.T @ (T[:3, 3] - p_pred)])
-        if J is not None:
-            idx, H = np.r_[idx, self._e.start : self._e.stop], np.hstack([H, J])
+        if J is not None:  # the consider parameters it sees (Schmidt, module docstring)
+            idx, H = np.r_[idx, J[0]], np.hstack([H, J[1]])
         return self._update(idx, H, r, C, self.relative_pose_gate)
 
     def update_body_velocity(self, v_body: np.ndarray, cov: np.ndarray, yaw_rate: float | None = None, yaw_rate_var: float | None = None) -> float:

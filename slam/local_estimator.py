@@ -30,7 +30,7 @@ import numpy as np
 
 from slam.filter import FilterParams, LocalReferenceFilter
 from slam.health import Health, HealthParams, HealthState
-from slam.lie import se3_inv, so3_log
+from slam.lie import adjoint, se3_inv, so3_log
 from slam.rest import RestDetector, RestParams, RestStats, chi2_3
 from slam.vo import StereoVO, VoResult, delta_in_body_frame, extrinsic_sensitivity
 
@@ -262,7 +262,8 @@ class LocalEstimator:
                 T_b, cov_b = delta_in_body_frame(result.T_kf_cur, result.cov, self._T_body_cam[kf], X_cur)
                 cov_b = 0.5 * (cov_b + cov_b.T)
                 J = extrinsic_sensitivity(result.T_kf_cur, X_cur)
-                applied = self.filter.update_relative_pose(kf, result.frame_id, T_b, cov_b, extrinsic_jacobian=J)
+                s = None if result.disparity_sensitivity is None else adjoint(X_cur) @ result.disparity_sensitivity
+                applied = self.filter.update_relative_pose(kf, result.frame_id, T_b, cov_b, extrinsic_jacobian=J, disparity_sensitivity=s)
                 if applied > self.filter.relative_pose_gate:
                     stats.reject("gate")
                     self._vo_trouble = ("vo rejected", "gate")

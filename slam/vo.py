@@ -25,11 +25,12 @@ What it does per stereo pair
    matrix, ``(J^T W J)^-1``: it comes from the pixel noise, the point depths and the
    inlier geometry of this very measurement (the "uncertainty estimates stemming from
    propagated measurement noise" of 4.1.1), not from a constant. Pixel noise averages
-   out over the points; a calibration error does not. So the covariance also holds the
-   rig's calibration uncertainty as consider parameters (our addition): a disparity
-   offset common to all points (:func:`disparity_bias_sensitivity`) here; the camera-IMU
-   extrinsics' error, the same for every delta, the filter holds as consider parameters
-   through each delta's sensitivity (:func:`extrinsic_sensitivity`).
+   out over the points; a calibration error does not, and it errs every delta alike. So
+   each delta also carries its sensitivity to the rig's calibration errors (our
+   addition): to a disparity offset common to all points
+   (:func:`disparity_bias_sensitivity`, ``VoResult.disparity_sensitivity``) and to the
+   camera-IMU extrinsics (:func:`extrinsic_sensitivity`); the filter holds both errors as
+   consider parameters (slam.filter, module docstring).
 5. Keyframe policy: a history of ``n_keyframes`` (thesis 4.1.1: n = 5). The current
    frame becomes a keyframe when the inliers fall below a share of the keyframe's
    points or a minimum count, when the motion since the keyframe exceeds a translation
@@ -126,18 +127,12 @@ class VoParams:
     keyframe_max_rotation_deg: float = 10.0
     # noise (thesis 5.1.1: 0.5 px)
     pixel_noise_px: float = DEFAULT_PIXEL_ERROR
-    # calibration uncertainty (a consider parameter, :func:`disparity_bias_sensitivity`): a
-    # disparity offset common to all points (0.25 px: a rectification yaw of 0.04 deg at the
-    # LRU's 338 px focal length); the camera-IMU calibration's is the filter's
-    # (slam.filter.FilterParams.extrinsic_rotation_std, :func:`extrinsic_sensitivity`)
-    disparity_bias_px: float = 0.25
 
     def __post_init__(self):
         positive = ("max_features", "grid_cols", "grid_rows", "min_features", "max_point_error_m", "klt_window_px",
                     "klt_fb_max_px", "ransac_threshold_px", "ransac_iterations", "refine_iterations",
                     "inlier_chi2", "min_inliers", "n_keyframes", "pixel_noise_px")
         bad = [f"{k}={getattr(self, k)}" for k in positive if not getattr(self, k) > 0]
-        bad += [f"disparity_bias_px={self.disparity_bias_px}"] if not self.disparity_bias_px >= 0 else []
         if bad:
             raise VoException(f"VoParams must be positive: {', '.join(bad)}")
         if self.min_inliers < 4:
@@ -162,6 +157,7 @@ class VoResult:
     new_keyframe: bool  # this frame became the (active) keyframe
     keyframe_history: tuple[int, ...]  # frame_ids of the kept keyframes, newest last
     matches: int = 0  # tracked features before PnP (diagnostics)
+    disparity_sensitivity: np.ndarray | None = None  # (6,) how T_kf_cur moves per pixel of disparity offset (:func:`disparity_bias_sensitivity`)
 
 
 @dataclass
@@ -183,6 +179,7 @@ class _Measurement:
     cov: np.ndarray | None = None
     inlier_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     matches: int = 0
+    disparity_sensitivity: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- geometry helpers
@@ -317,8 +314,9 @@ def disparity_bias_sensitivity(
     ``δ`` moves each point by ``dX/dδ = -X z / (f b)``; at the solution the pose moves by
     ``H^-1 Σ J_i^T W_i dr_i/dδ`` with ``dr_i/dδ = J_p R^T X_i z_i / (f b)`` (the
     Gauss-Newton step of the perturbed problem). ``σ_δ^2 s s^T`` is then the delta's
-    covariance from the calibration's uncertainty, a consider parameter in Schmidt's
-    sense (the estimate does not solve for it)."""
+    covariance from the calibration's uncertainty; the offset is the same in every delta,
+    so the filter holds it as a consider parameter in Schmidt's sense (the estimate does
+    not solve for it)."""
     _, J, W, JpRt = _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
     H = J.reshape(-1, 6).T @ (W @ J).reshape(-1, 6)
     dr = np.einsum("nij,nj->ni", JpRt, X * (X[:, 2] / fb)[:, None])
@@ -416,7 +414,7 @@ class StereoVO:
             return VoResult(t, frame_id, False, reason, None, None, None, 0, np.zeros((0, 2)), new_kf, history,
                             0 if meas is None else meas.matches)
         return VoResult(t, frame_id, True, None, ref.frame_id, meas.T, meas.cov, len(meas.inlier_uv), meas.inlier_uv,
-                        new_kf, history, meas.matches)
+                        new_kf, history, meas.matches, meas.disparity_sensitivity)
 
     # ------------------------------------------------------------------ keyframes
 
@@ -576,13 +574,11 @@ class StereoVO:
         T, H, _, _ = refine_pose(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, p.refine_iterations - half)
         try:
             cov = np.linalg.inv(H)
-            if p.disparity_bias_px > 0:
-                s = disparity_bias_sensitivity(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, c.fb)
-                cov += p.disparity_bias_px**2 * np.outer(s, s)
+            s = disparity_bias_sensitivity(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, c.fb)
         except np.linalg.LinAlgError:
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
         std = np.sqrt(np.diag(cov))
-        if (not np.all(np.isfinite(cov)) or np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0)
+        if (not np.all(np.isfinite(cov)) or not np.all(np.isfinite(s)) or np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0)
                 or std[:3].max() > p.max_rotation_std_rad or std[3:].max() > p.max_translation_std_m):
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
-        return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n)
+        return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n, s)

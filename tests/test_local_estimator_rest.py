@@ -146,6 +146,7 @@ def filter_params(spec: ImuSpec) -> FilterParams:
         accel_misalignment_std=0.0,
         extrinsic_rotation_std=0.0,
         extrinsic_translation_std=0.0,
+        disparity_bias_std=0.0,
     )
 
 

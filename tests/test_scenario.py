@@ -32,7 +32,6 @@ from slam.matcher import MatcherParams, MatchMode
 from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.submap import SubmapParams
-from slam.vo import VoParams
 
 SCENARIOS = sorted(Path(__file__).parents[1].joinpath("scenarios").glob("*.yaml"))
 
@@ -115,7 +114,6 @@ def test_slam_keys_take_slam_defaults_and_units():
     assert AgentParams(**slam_kwargs(AgentParams, GraphConfig(), DetectionConfig())) == AgentParams()
     assert HealthParams(**slam_kwargs(HealthParams, HealthConfig())) == HealthParams()
     assert RestParams(**slam_kwargs(RestParams, SlamConfig())) == RestParams()
-    assert VoParams(**slam_kwargs(VoParams, SlamConfig())) == VoParams()
     filter_kwargs = slam_kwargs(FilterParams, SlamConfig())
     assert filter_kwargs == {
         "gyro_scale_std": 0.001,
@@ -123,6 +121,7 @@ def test_slam_keys_take_slam_defaults_and_units():
         "accel_misalignment_std": pytest.approx(math.radians(0.05)),
         "extrinsic_rotation_std": pytest.approx(math.radians(0.2)),
         "extrinsic_translation_std": 0.005,
+        "disparity_bias_std": 0.25,
     }
     assert slam_kwargs(RestParams, SlamConfig(zero_velocity=False)) == {"zero_velocity": False}
     linked = 0

@@ -48,7 +48,7 @@ from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.stereo import StereoCalibration, depth_error
 from slam.submap import SubmapParams
-from slam.vo import StereoVO, VoParams, VoResult
+from slam.vo import StereoVO, VoResult
 
 #: Tilt error of the resting initialisation beyond the accelerometer bias: the mean of
 #: 0.5 s of samples has a noise of a few thousandths of a degree; the rest is margin for
@@ -165,7 +165,7 @@ class OnboardStack:
         mapping = cfg.mapping
         self.estimator = LocalEstimator(
             filter_params(imu_spec, gravity, cfg),
-            StereoVO(calibration(self.vo_rig), VoParams(**slam_kwargs(VoParams, cfg))),
+            StereoVO(calibration(self.vo_rig)),
             init_time=robot.cfg.route.start_delay_s,
             rest_window=cfg.initial_rest_s,
             frame_switch_distance=None if mapping.enabled else cfg.frame_switch_distance_m,
