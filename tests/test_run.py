@@ -127,18 +127,21 @@ def test_filter_estimates_appear_after_the_vo_latency(quickstart):
 def test_filter_nees_and_biases_against_truth(quickstart):
     """Consistency of the observable states (roll, pitch, body velocity; 5 dof, a
     consistent filter has a mean NEES of 5) and the gyro biases. Measured on this 12 s
-    run (seed 1): lru1 mean 15.1 / median 4.4 (brief spikes in the point turn at 11 s),
-    lru2 2.7 / 1.7, ARDEA 21 / 21: its roll stays overconfident by about 2x after the
-    ADIS16407's 50 mg turn-on accelerometer bias tilted the start (docs/estimation.md).
-    The bounds hold those values with a margin for other seeds; ARDEA's is a regression
-    guard for a known limitation, not a claim of consistency."""
+    run (seed 1): lru1 mean 5.7 / median 4.3 / max 82, lru2 2.1 / 1.2 / 21, ARDEA 15 / 14:
+    its roll stays overconfident by about 2x after the ADIS16407's 50 mg turn-on
+    accelerometer bias tilted the start (docs/estimation.md). The bounds hold those
+    values with a margin for other seeds; ARDEA's is a regression guard for a known
+    limitation, not a claim of consistency. The rovers' maximum guards the scoring at the
+    filter's own time: against the truth one IMU sample later, the jolt at the start of
+    lru1's point turn (11 s) made a spike of about 960 and a mean of 9.4."""
     from sim.evaluation.trajectory import nees_report
 
-    bounds = {"lru1": (25.0, 10.0), "lru2": (10.0, 5.0), "ardea": (35.0, 35.0)}  # mean, median
-    for robot, (mean_bound, median_bound) in bounds.items():
+    bounds = {"lru1": (10.0, 10.0, 200.0), "lru2": (10.0, 5.0, 200.0), "ardea": (35.0, 35.0, np.inf)}  # mean, median, max
+    for robot, (mean_bound, median_bound, max_bound) in bounds.items():
         log = quickstart.robots[robot].onboard.log
-        report, _ = nees_report(np.stack(log.observable), np.stack(log.observable_true), np.stack(log.observable_cov))
+        report, values = nees_report(np.stack(log.observable), np.stack(log.observable_true), np.stack(log.observable_cov))
         assert report["mean"] < mean_bound and report["median"] < median_bound, (robot, report["mean"], report["median"])
+        assert values.max() < max_bound, (robot, values.max())
         bias, truth = np.stack(log.bias), np.stack(log.bias_true)
         # gyro biases from the resting start: within 0.1 deg/s all along (turn-on spread: 0.5 and 3 deg/s)
         assert np.degrees(np.abs(bias[:, 3:] - truth[:, 3:])).max() < 0.1, robot

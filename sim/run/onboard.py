@@ -19,6 +19,7 @@ ground truth for evaluation.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import mujoco
@@ -38,7 +39,7 @@ from slam.agent import Agent, AgentParams, Outgoing, TeamMarker
 from slam.filter import FilterParams
 from slam.graph import GraphParams
 from slam.health import HealthParams
-from slam.lie import rot_z, se3, se3_inv
+from slam.lie import roll_pitch, rot_z, se3, se3_inv
 from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
 from slam.matcher import MatcherParams
@@ -49,6 +50,8 @@ from slam.rest import RestParams
 from slam.stereo import StereoCalibration, depth_error
 from slam.submap import SubmapParams
 from slam.vo import StereoVO, VoResult
+
+TRUTH_MATCH_S = 1e-6  # s: a truth sample is at the filter's time within this
 
 #: Tilt error of the resting initialisation beyond the accelerometer bias: the mean of
 #: 0.5 s of samples has a noise of a few thousandths of a degree; the rest is margin for
@@ -473,12 +476,23 @@ class OnboardStack:
 
     # ------------------------------------------------------------------ logging
 
-    def record(self, now: float, R_world_body: np.ndarray, v_world: np.ndarray, bias_true: np.ndarray) -> None:
-        """Log the current estimate next to the truth (truth never enters the estimator)."""
+    def record(self, now: float, recent_truth: Sequence[tuple[float, np.ndarray, np.ndarray, np.ndarray]]) -> None:
+        """Log the current estimate next to the truth (truth never enters the estimator).
+        ``recent_truth``: ``(t, R_world_body, v_world, bias_true)`` of the latest physics
+        ticks, newest last. The filter runs behind the physics (its lane takes an IMU sample
+        after the tick that measured it: one IMU period, more when the lane is busy), so
+        its roll, pitch, velocity and biases are scored against the truth at the filter's
+        own time; at ``now`` a jolt (a point turn's start lifts the body at 7 cm/s for a few
+        milliseconds) made NEES spikes of 100 and more out of a 5 ms lag. Nothing is
+        logged while the filter lags more than ``recent_truth`` reaches back."""
         est = self.estimator
         if not est.initialised:
             return
         f = est.filter
+        truth = next((s for s in reversed(recent_truth) if abs(s[0] - f.t) < TRUTH_MATCH_S), None)
+        if truth is None:
+            return
+        _, R_world_body, v_world, bias_true = truth
         log = self.log
         log.t.append(now)
         log.pose_first_frame.append(est.T_first_current @ f.pose())
@@ -486,9 +500,7 @@ class OnboardStack:
         x, cov = f.observable_estimate()
         log.observable.append(x)
         log.observable_cov.append(cov)
-        r = R_world_body
-        roll, pitch = np.arctan2(r[2, 1], r[2, 2]), -np.arcsin(np.clip(r[2, 0], -1, 1))
-        log.observable_true.append(np.concatenate([[roll, pitch], r.T @ v_world]))
+        log.observable_true.append(np.concatenate([roll_pitch(R_world_body), R_world_body.T @ v_world]))
         log.position_std.append(np.sqrt(np.diag(f.covariance()[:3, :3])))
         log.bias.append(np.concatenate([f.accel_bias, f.gyro_bias]))
         log.bias_true.append(bias_true)

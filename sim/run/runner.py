@@ -18,7 +18,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -59,6 +59,7 @@ LANDER_ANTENNA_HEIGHT_M = 1.8  # above the lander base; a robot's is its class's
 DEPTH_BINS_M = (0.0, 2.0, 4.0, 6.0, 10.0, math.inf)
 DEPTH_SAMPLE_STRIDE = 2  # score every 2nd pixel in each direction
 DRAIN_POLL_S = 0.1  # while draining: how often the run checks for work left
+TRUTH_HISTORY_S = 0.5  # how far back the truth is kept to score a filter that lags the physics
 
 
 def _labels() -> list[str]:
@@ -168,6 +169,7 @@ class RobotRuntime:
     faults: ConditionFaults | None = None  # the scenario's condition faults that hit the robot (sim/run/faults.py)
     image_cells: ImageCells | None = None  # mapped images' obstacle cells at true camera poses
     capture_truth: dict[int, tuple] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots, true depth or None
+    recent_truth: deque = field(default_factory=deque)  # (t, R, v, biases) at the latest IMU samples, for OnboardStack.record
     dataset: DatasetWriter | None = None  # output.dataset: the robot's sensor data as it comes (sim/run/dataset.py)
 
 
@@ -331,6 +333,7 @@ class Run:
             odom_every=self._every(cfg.wheel_odometry.rate_hz),
             onboard=onboard,
             faults=condition_faults(self.scenario, robot.name),
+            recent_truth=deque(maxlen=max(2, round(TRUTH_HISTORY_S * cfg.imu.rate_hz))),
         )
         if onboard is not None and onboard.mapper is not None:
             runtime.image_cells = ImageCells(calibration(onboard.vo_rig), onboard.mapper.obstacle_params)
@@ -530,6 +533,9 @@ class Run:
         for runtime in self.robots.values():
             robot, log, onboard = runtime.robot, runtime.log, runtime.onboard
             t = time.perf_counter()
+            if onboard is not None and tick % runtime.imu_every == 0:
+                bias_true = np.concatenate([runtime.imu.accel_bias, runtime.imu.gyro_bias])
+                runtime.recent_truth.append((now, robot.rotation(), robot.velocity()[0], bias_true))
             if tick % gt_every == 0:
                 pos, quat = robot.pose()
                 log.gt_t.append(now)
@@ -541,8 +547,7 @@ class Run:
                 if self.recorder is not None:
                     self.recorder.log_pose(robot.name, now, pos, quat)
                 if onboard is not None and not robot.dead:
-                    bias_true = np.concatenate([runtime.imu.accel_bias, runtime.imu.gyro_bias])
-                    onboard.record(now, robot.rotation(), robot.velocity()[0], bias_true)
+                    onboard.record(now, runtime.recent_truth)
                 if runtime.dataset is not None:
                     runtime.dataset.truth(now, pos, quat, robot.velocity()[0], runtime.imu.gyro_bias, runtime.imu.accel_bias)
             if robot.dead:  # its sensors and computer are off; the truth goes on
