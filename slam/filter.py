@@ -50,8 +50,9 @@ gyro ``w = omega + b_w + n``.
 Covariance orderings returned
 -----------------------------
 - :meth:`covariance`: 15x15 core block in the order above (``dtheta`` left, local frame).
-- :meth:`full_covariance`: core, the consider parameters ``k`` when modelled, then six
-  per clone ``[dtheta_c, dp_c]``, clones in :attr:`clone_ids` order.
+- :meth:`full_covariance`: core, the consider parameters that are modelled (``k``, ``e``,
+  the disparity offset, in this order), then six per clone ``[dtheta_c, dp_c]``, clones
+  in :attr:`clone_ids` order.
 - :meth:`pose_covariance`: 6x6 ``[rotation, translation]`` of :meth:`pose`, *right*
   perturbation in the body frame, ``T_true = T Exp([omega, rho])`` to first order
   (GTSAM's ``Pose3`` convention): ``omega = R^T dtheta``, ``rho = R^T dp``.
@@ -377,9 +378,9 @@ class LocalReferenceFilter:
         params = self.params
         nk = MISALIGNMENT if params.accel_misalignment_std > 0.0 else 0
         ne = EXTRINSIC if max(params.extrinsic_rotation_std, params.extrinsic_translation_std) > 0.0 else 0
+        nd = DISPARITY if params.disparity_bias_std > 0.0 else 0
         self._k = slice(CORE, CORE + nk)
         self._e = slice(CORE + nk, CORE + nk + ne)
-        nd = DISPARITY if params.disparity_bias_std > 0.0 else 0
         self._d = slice(CORE + nk + ne, CORE + nk + ne + nd)
         self._base = CORE + nk + ne + nd
         std = [params.accel_misalignment_std] * nk + ([params.extrinsic_rotation_std] * 3 + [params.extrinsic_translation_std] * 3) * (ne > 0)
@@ -491,8 +492,8 @@ class LocalReferenceFilter:
         return self._Pbuf[:CORE, :CORE].copy()
 
     def full_covariance(self) -> np.ndarray:
-        """Core, consider (``k``, when modelled) and clone covariance, ``15 (+ 2) + 6 n``
-        square (clones ``[dtheta_c, dp_c]`` in :attr:`clone_ids` order)."""
+        """Core, consider and clone covariance, ``15 + c + 6 n`` square (``c``: the consider
+        parameters modelled, up to 9; clones ``[dtheta_c, dp_c]`` in :attr:`clone_ids` order)."""
         d = self._dim
         return self._Pbuf[:d, :d].copy()
 
