@@ -69,14 +69,15 @@ def test_final_graph_metrics_are_those_of_the_final_trajectory(results):
     """``slam.final_graph`` scores the trajectory by the final graph (``slam_final.tum``) against the truth in the
     start frame (``gt_start.tum``), as ``slam.ate_m`` scores the online one."""
     _, out, metrics = results
+    tol = 5e-6  # the TUM files hold positions to 1 um: two of them round a distance by up to about 2 um
     for name in ROBOTS:
         slam = metrics["robots"][name]["slam"]
         truth = read_tum(out / "trajectories" / f"{name}.gt_start.tum")
         final = trajectory_metrics(read_tum(out / "trajectories" / f"{name}.slam_final.tum"), truth)[0]
         online = trajectory_metrics(read_tum(out / "trajectories" / f"{name}.slam.tum"), truth)[0]
-        assert slam["ate_m"]["rmse"] == pytest.approx(online["ate_m"]["rmse"], abs=1e-6)
-        assert slam["final_graph"]["ate_m"]["rmse"] == pytest.approx(final["ate_m"]["rmse"], abs=1e-6)
-        assert slam["final_graph"]["final_error_m"] == pytest.approx(final["final_error_m"], abs=1e-6)
+        assert slam["ate_m"]["rmse"] == pytest.approx(online["ate_m"]["rmse"], abs=tol)
+        assert slam["final_graph"]["ate_m"]["rmse"] == pytest.approx(final["ate_m"]["rmse"], abs=tol)
+        assert slam["final_graph"]["final_error_m"] == pytest.approx(final["final_error_m"], abs=tol)
 
 
 def test_beliefs_are_the_slam_logs_rows(results):
