@@ -210,7 +210,9 @@ def extrinsic_sensitivity(T_kf_cur: np.ndarray, T_body_cam: np.ndarray) -> np.nd
     (6x6). The true body delta is that of ``Exp(e) T Exp(-e) = T Exp((Ad_{T^-1} - I) e)``;
     ``J`` grows with the delta's rotation and translation and vanishes for no motion. The
     filter holds ``e`` as consider parameters (slam.filter, module docstring): one error
-    for all deltas, where a covariance per delta would average it out."""
+    for all deltas, where a covariance per delta would average it out. On a pan-tilt
+    head that moved between the two captures, ``e`` is taken as the same in both camera
+    frames (the head's own offsets then differ between them: an approximation)."""
     A = adjoint(np.linalg.inv(np.asarray(T_kf_cur, dtype=float))) - np.eye(6)
     return -adjoint(np.asarray(T_body_cam, dtype=float)) @ A
 
