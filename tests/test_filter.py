@@ -710,28 +710,41 @@ def test_nees_of_roll_pitch_and_velocity_within_chi_square_bounds():
         assert 0.8 * 5 < avg.mean() < 1.2 * 5, avg.mean()
 
 
+def _nees_with_sensor_error(params: FilterParams, seed: int, error, runs: int = 12, **run_kwargs):
+    """Monte Carlo over ``runs`` seeded 20 s tilting flights whose sensors carry an error
+    that ``error(rng, imu, truth)`` draws per run (it may alter ``imu`` and returns more
+    arguments for :func:`run`): the NEES of ``[roll, pitch, v_body]`` (5 dof) and of roll
+    and pitch alone (2 dof), per run and checkpoint, and the last run's filter."""
+    tr = wiggly(20.0)
+    ks = tuple(range(400, len(tr.t), 200))
+    full, rp = np.zeros((runs, len(ks))), np.zeros((runs, len(ks)))
+    for r in range(runs):
+        rng = np.random.default_rng(seed + r)
+        imu = noisy_imu(tr, PARAMS, rng)
+        extra = error(rng, imu, tr)
+        init = rng.normal(0, PARAMS.initial_roll_pitch_std, 2)
+        f, _, _, res = run(tr, imu, params, rng_seed=seed + 100 + r, init_error=tuple(init), checkpoints=ks, **extra, **run_kwargs)
+        for i, (_, _, eo, Po) in enumerate(res):
+            full[r, i] = eo @ np.linalg.solve(Po, eo)
+            rp[r, i] = eo[:2] @ np.linalg.solve(Po[:2, :2], eo[:2])
+    return full, rp, f
+
+
 def test_misaligned_accelerometer_is_held_by_the_consider_parameters():
     """An IMU whose z axis leans towards x and y by ``k`` (drawn per run, 0.3 deg std) on a
     tilting flight: gravity sees ``g k sin(tilt)`` as a tilt error. Without the consider
     parameters the filter is sure of a wrong roll and pitch (NEES far above its 2 dof);
     with them (Schmidt-Kalman, the same std) roll and pitch are consistent, and the
     5-dof NEES with the velocity too."""
-    runs, dur = 12, 20.0
-    tr = wiggly(dur)
-    ks = tuple(range(400, len(tr.t), 200))
+
+    def misalign(rng, imu, tr):
+        imu.f[:, 2] += tr.f[:, :2] @ rng.normal(0, MISALIGNMENT_STD, 2)
+        return {}
+
     held = replace(PARAMS, accel_misalignment_std=MISALIGNMENT_STD)
     nees = {}
     for label, params in (("blind", PARAMS), ("held", held)):
-        rp, full = np.zeros((runs, len(ks))), np.zeros((runs, len(ks)))
-        for r in range(runs):
-            rng = np.random.default_rng(100 + r)
-            imu = noisy_imu(tr, PARAMS, rng)
-            imu.f[:, 2] += tr.f[:, :2] @ rng.normal(0, MISALIGNMENT_STD, 2)
-            init = rng.normal(0, PARAMS.initial_roll_pitch_std, 2)
-            f, _, _, res = run(tr, imu, params, rng_seed=200 + r, init_error=tuple(init), switch_at=(1500,), checkpoints=ks)
-            for i, (_, _, eo, Po) in enumerate(res):
-                rp[r, i] = eo[:2] @ np.linalg.solve(Po[:2, :2], eo[:2])
-                full[r, i] = eo @ np.linalg.solve(Po, eo)
+        full, rp, f = _nees_with_sensor_error(params, 100, misalign, switch_at=(1500,))
         nees[label] = (rp.mean(), full.mean(), rp[:, -5:].mean())
     (rp_blind, full_blind, late_blind), (rp_held, full_held, late_held) = nees["blind"], nees["held"]
     assert rp_blind > 3 * 2 and late_blind > 5 * 2 and full_blind > 2.5 * 5, nees
@@ -744,24 +757,11 @@ def test_camera_calibration_error_is_held_by_the_consider_parameters():
     run: 0.5 deg, 1 cm): every delta errs the same way for the same motion. Without the
     extrinsic consider parameters the filter is sure of a biased tilt and velocity (NEES
     far above its 5 dof); with them (Schmidt-Kalman, the same std) it is consistent."""
-    runs, dur = 12, 20.0
-    tr = wiggly(dur)
-    ks = tuple(range(400, len(tr.t), 200))
     X = se3(rot_zyx(-math.pi / 2 - 0.3, 0.0, -math.pi / 2), [0.2, 0.0, 0.8])  # a mast camera looking ahead, tilted down
     std = np.array([math.radians(0.5)] * 3 + [0.01] * 3)
     held = replace(PARAMS, extrinsic_rotation_std=std[0], extrinsic_translation_std=std[3])
-    nees = {}
-    for label, params in (("blind", PARAMS), ("held", held)):
-        full = np.zeros((runs, len(ks)))
-        for r in range(runs):
-            rng = np.random.default_rng(300 + r)
-            imu = noisy_imu(tr, PARAMS, rng)
-            e = rng.normal(0.0, std)
-            init = rng.normal(0, PARAMS.initial_roll_pitch_std, 2)
-            *_, res = run(tr, imu, params, rng_seed=400 + r, init_error=tuple(init), checkpoints=ks, camera=(X, e))
-            for i, (_, _, eo, Po) in enumerate(res):
-                full[r, i] = eo @ np.linalg.solve(Po, eo)
-        nees[label] = full.mean()
+    nees = {label: _nees_with_sensor_error(params, 300, lambda rng, imu, tr: {"camera": (X, rng.normal(0.0, std))})[0].mean()
+            for label, params in (("blind", PARAMS), ("held", held))}
     assert nees["blind"] > 2.5 * 5 and 0.6 * 5 < nees["held"] < 1.3 * 5, nees
 
 
@@ -769,22 +769,10 @@ def test_disparity_offset_is_held_by_the_consider_parameter():
     """VO deltas of a rig with a disparity offset (drawn per run, 0.5 px std), each delta's
     translation off by 6 % per pixel: the same scale error in every delta. Without the
     consider parameter the filter's velocity is overconfident; with it consistent."""
-    runs, dur = 12, 20.0
-    tr = wiggly(dur)
-    ks = tuple(range(400, len(tr.t), 200))
     std = 0.5
-    nees = {}
-    for label, params in (("blind", replace(PARAMS, disparity_bias_std=0.0)), ("held", replace(PARAMS, disparity_bias_std=std))):
-        full = np.zeros((runs, len(ks)))
-        for r in range(runs):
-            rng = np.random.default_rng(500 + r)
-            imu = noisy_imu(tr, PARAMS, rng)
-            offset = rng.normal(0.0, std)
-            init = rng.normal(0, PARAMS.initial_roll_pitch_std, 2)
-            *_, res = run(tr, imu, params, rng_seed=600 + r, init_error=tuple(init), checkpoints=ks, disparity=(0.06, offset))
-            for i, (_, _, eo, Po) in enumerate(res):
-                full[r, i] = eo @ np.linalg.solve(Po, eo)
-        nees[label] = full.mean()
+    blind, held = replace(PARAMS, disparity_bias_std=0.0), replace(PARAMS, disparity_bias_std=std)
+    nees = {label: _nees_with_sensor_error(params, 500, lambda rng, imu, tr: {"disparity": (0.06, rng.normal(0.0, std))})[0].mean()
+            for label, params in (("blind", blind), ("held", held))}
     assert nees["blind"] > 2.5 * 5 and 0.6 * 5 < nees["held"] < 1.3 * 5, nees
 
 

@@ -20,7 +20,7 @@ from slam.health import HealthState
 from slam.lie import rot_zyx, se3, se3_inv, so3_exp
 from slam.local_estimator import LocalEstimator
 from slam.rest import RestDetector, RestException, RestParams
-from slam.vo import VoFailure, VoParams, VoResult
+from slam.vo import VoFailure, VoResult
 
 G = 9.81
 GVEC = np.array([0.0, 0.0, -G])
@@ -321,8 +321,6 @@ VO_COV = np.diag([0.002**2] * 3 + [0.005**2] * 3)  # [rotation (rad), translatio
 class NoImages:
     """Stands in for slam.vo.StereoVO where the test hands in VO results itself (from
     the truth: no calibration error to allow for)."""
-
-    params = VoParams()
 
 
 class VoFeed:
