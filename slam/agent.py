@@ -265,12 +265,24 @@ class Agent:
         return FrameSwitchMessage(self.name, switch.frame_index - 1, switch.t, switch.T_old_new, cov)
 
     def detect(self, t: float, image: np.ndarray, camera: str, K: np.ndarray, T_body_cam: np.ndarray) -> list[Outgoing]:
-        """Marker detection in one rectified image captured at ``t`` (thesis 6.2.1): at most
-        one detection per target and ``detection_interval_s``, the nearest marker of it."""
+        """Marker detection in one rectified image captured at ``t`` (thesis 6.2.1):
+        :meth:`find_markers`, then :meth:`detections_from`."""
+        return self.detections_from(t, self.find_markers(camera, K, image), camera, T_body_cam)
+
+    def find_markers(self, camera: str, K: np.ndarray, image: np.ndarray) -> list[MarkerDetection]:
+        """The team's markers in one rectified image of ``camera`` (intrinsics ``K``). Reads
+        none of the agent's state: it may run on another thread than the agent, one call
+        per camera at a time (``sim/run/pipeline.py``)."""
         detector = self._detectors.get(camera)
         if detector is None:
             detector = self._detectors[camera] = MarkerDetector(K, {m.tag_id: m.size_m for m in self.markers.values() if m.robot != self.name})
-        found = detector.detect(image)
+        return detector.detect(image)
+
+    def detections_from(self, t: float, found: list[MarkerDetection], camera: str, T_body_cam: np.ndarray) -> list[Outgoing]:
+        """The detections to use of the markers ``found`` in an image of ``camera`` captured
+        at ``t`` (:meth:`find_markers`): at most one per target and ``detection_interval_s``,
+        the nearest marker of it, with the own pose at ``t`` and the uncertainty model's covariance."""
+        detector = self._detectors.get(camera)  # made by find_markers, which found ``found``
         self.stats.detections_seen += len(found)
         best: dict[str, tuple] = {}
         for det in found:

@@ -5,6 +5,8 @@ from __future__ import annotations  # noqa: I001  (sim before mujoco: it sets MU
 
 import dataclasses
 import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import sim  # noqa: F401  (MUJOCO_GL)
@@ -228,15 +230,37 @@ def test_renderers_share_a_context_and_close_independently():
     model, data = camera_scene("0 0 2", "0 0 0")
     a = StereoRenderer(model, RIG, CameraConfig())
     b = StereoRenderer(model, RIG, CameraConfig())
-    assert a._target is b._target and a._target.users == 2
     first = a.render(data).left
+    np.testing.assert_array_equal(b.render(data).left, first)
+    assert a._target is b._target and a._target.users == 2
     a.close()
     a.close()  # idempotent
     np.testing.assert_array_equal(b.render(data).left, first)
     b.close()
-    assert (id(model), 320, 240) not in _RenderTarget._registry
+    assert (id(model), 320, 240, threading.get_ident()) not in _RenderTarget._registry
     with pytest.raises(SensorError, match="closed"):
         b.render(data)
+
+
+def test_a_snapshot_draws_the_state_it_was_taken_at_in_another_thread():
+    """The image pipeline's contract (sim/run/pipeline.py): the scene is fixed at the
+    snapshot, the state may move on before the draw, and the draw may happen in another thread."""
+    model, data = camera_scene("0 0 2", "0 0 0")
+    with StereoRenderer(model, RIG, CameraConfig()) as here:
+        before = here.render(data, with_depth=True)
+    renderer = StereoRenderer(model, RIG, CameraConfig())
+    request = renderer.snapshot(data, with_depth=True)
+    model.body_pos[1] += [0.3, 0.0, 0.2]  # the camera body moves on
+    mujoco.mj_forward(model, data)
+    with ThreadPoolExecutor(1) as worker:
+        frame = worker.submit(renderer.draw, request).result()
+        moved = worker.submit(renderer.render, data).result()
+        with pytest.raises(SensorError, match="thread"):
+            renderer.render(data)  # it draws in the worker now
+        worker.submit(renderer.close).result()
+    for image in ("left", "right", "depth"):
+        np.testing.assert_array_equal(getattr(frame, image), getattr(before, image))
+    assert not np.array_equal(moved.left, before.left)
 
 
 def test_renderer_rejects_cameras_that_do_not_match_the_rig():

@@ -27,8 +27,8 @@ ENCOUNTER = [
 ]
 
 
-def encounter() -> Run:
-    run = Run(load_scenario("scenarios/spacebotcamp_outage.yaml", ENCOUNTER))
+def encounter(image_workers: int) -> Run:
+    run = Run(load_scenario("scenarios/spacebotcamp_outage.yaml", ENCOUNTER), image_workers=image_workers)
     run.execute()
     run.drain(15.0)  # let what the outage parked arrive (2 s latency per hop)
     return run
@@ -36,7 +36,8 @@ def encounter() -> Run:
 
 @pytest.fixture(scope="module")
 def runs():
-    return encounter(), encounter()
+    """The encounter with its images on a worker thread, and inline (sim/run/pipeline.py)."""
+    return encounter(1), encounter(0)
 
 
 def _truth(run, robot, t):
@@ -93,6 +94,7 @@ def test_each_robot_knows_where_the_other_is(runs):
 
 
 def test_same_scenario_same_slam(runs):
+    """Deterministic, and the same whether the images are formed on a worker thread or inline."""
     a, b = runs
     for name in a.robots:
         sa, sb = a.robots[name].onboard.slam_log, b.robots[name].onboard.slam_log

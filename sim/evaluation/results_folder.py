@@ -369,13 +369,15 @@ def runtime_metrics(run: Run) -> dict[str, Any]:
     parts = dict(sorted(run.timers.seconds.items()))
     accounted = sum(parts.values())
     parts["other"] = max(0.0, run.wall_s - accounted)
+    background = dict(sorted(run.images.timers.seconds.items())) if run.images.threaded else {}
     return {
         "wall_s": run.wall_s,
         "sim_s": run.sim_time,
         "drain_s": run.sim_time - run.mission_s,  # after every route was done (docs/matching.md, "The end of a run")
         "drain_end": run.drain_end,
         "real_time_factor": run.sim_time / run.wall_s if run.wall_s > 0 else None,
-        "parts_s": parts,
+        "parts_s": parts,  # the run loop's thread; "waiting": blocked on the image pipeline (sim/run/pipeline.py)
+        "image_thread_s": background,  # the image pipeline's worker, beside the loop (empty when inline)
         "memory": run.memory.metrics(),  # resident set size over simulated time (sim/run/memory.py)
     }
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from enum import IntEnum, StrEnum
 from typing import Any
@@ -93,10 +94,24 @@ class _StageQueue:
 
 class Lane:
     """One robot's computer. ``submit`` returns the SimPy process of the job, or
-    ``None`` when a real-time job was dropped because its stage queue was full."""
+    ``None`` when a real-time job was dropped because its stage queue was full.
 
-    def __init__(self, env: simpy.Environment, robot: str, cores: int, fpga: bool, compute: ComputeModel, max_queue: int):
+    A job's ``work`` runs when the job starts. If it returns a :class:`Future` (work handed
+    to the image pipeline's worker thread, ``sim/run/pipeline.py``), the lane takes the
+    result through ``resolve`` when the job finishes in simulated time, before ``on_done``."""
+
+    def __init__(
+        self,
+        env: simpy.Environment,
+        robot: str,
+        cores: int,
+        fpga: bool,
+        compute: ComputeModel,
+        max_queue: int,
+        resolve: Callable[[Future], Any] = Future.result,
+    ):
         self.env = env
+        self.resolve = resolve
         self.robot = robot
         self.compute = compute
         self.max_queue = max_queue
@@ -193,6 +208,8 @@ class Lane:
                 except simpy.Interrupt:  # preempted by a real-time job: queue for the rest
                     left -= self.env.now - start
                     request = yield from self._acquire(resource, self._request(resource, priority), priority)
+            if isinstance(result, Future):
+                result = self.resolve(result)
             record.finished = self.env.now
             self.busy_s[record.device] += record.compute_s
             queue.done.append([record.submitted, record.started, record.finished, record.wall_s, record.compute_s])

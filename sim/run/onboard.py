@@ -19,8 +19,10 @@ ground truth for evaluation.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -42,6 +44,7 @@ from slam.health import HealthParams
 from slam.lie import roll_pitch, rot_z, se3, se3_inv
 from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
+from slam.markers import MarkerDetection
 from slam.matcher import MatcherParams
 from slam.navigation.exploration import ExplorationParams, Goal
 from slam.navigation.explorer import Explorer
@@ -273,15 +276,23 @@ class OnboardStack:
         if self.mapper is not None and self.mapper.builder.images:
             self.lane.submit("filter_update", work=lambda: self._new_submap(now, "end"), on_done=lambda out, t: self._send(out))
 
-    def detection(self, now: float, image: np.ndarray, rig: StereoRig, T_body_cam: np.ndarray) -> None:
-        """Marker detection in a left image of any of the robot's rigs (thesis 6.2.1)."""
+    def detection(self, now: float, rig: StereoRig, T_body_cam: np.ndarray, search: Callable[[], Any] | None) -> None:
+        """Marker detection in the left image of a pair of any of the robot's rigs (thesis
+        6.2.1). ``search`` is the job's work, :meth:`find_markers` of the pair (on the image
+        pipeline's worker when it has one, ``sim/run/pipeline.py``); what the robot makes of
+        the markers found, with its state then, is done when the job ends. ``search`` None:
+        no marker can show in the image (``Run._markers_in_view``, from the true poses) and
+        the simulator skips the search, which would find none; the job and its modelled time stay."""
         if self.detect_markers and self.estimator.initialised:
-            K = rig.intrinsics
             self.lane.submit(
                 "detection",
-                work=lambda: self.agent.detect(now, image, rig.name, K, T_body_cam),
-                on_done=lambda out, t: self._send(out),
+                work=search or list,
+                on_done=lambda found, t: self._send(self.agent.detections_from(now, found, rig.name, T_body_cam)),
             )
+
+    def find_markers(self, rig: StereoRig, pair: Future) -> list[MarkerDetection]:
+        """The team's markers in the left image of ``pair`` (a future :class:`~sim.world.sensors.StereoFrame` of ``rig``)."""
+        return self.agent.find_markers(rig.name, rig.intrinsics, pair.result().left)
 
     # ------------------------------------------------------------------ sensor events
 

@@ -20,6 +20,7 @@ import math
 import time
 from collections import defaultdict, deque
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import mujoco
@@ -37,6 +38,7 @@ from sim.run.faults import ConditionFaults, condition_faults
 from sim.run.lanes import ComputeModel, Device, Lane, Priority
 from sim.run.memory import MemoryTrace
 from sim.run.onboard import OnboardStack, body_camera_transform, calibration
+from sim.run.pipeline import ImagePipeline
 from sim.run.recording import Recorder
 from sim.run.series import LogHistogram, Rows
 from sim.scenario import Scenario, control_ticks
@@ -45,9 +47,21 @@ from sim.world.calibration_errors import believed_body_camera, draw_calibration_
 from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
 from sim.world.compose import World, build_world
 from sim.world.imaging import CameraImaging, imaging_params
-from sim.world.sensors import IMU_PRESETS, ImuErrors, ImuModel, InertialAverager, StereoRenderer, WheelErrors, WheelOdometryModel
+from sim.world.markers import MARKER_MATERIAL_PREFIX
+from sim.world.sensors import (
+    IMU_PRESETS,
+    ImuErrors,
+    ImuModel,
+    InertialAverager,
+    RenderRequest,
+    StereoFrame,
+    StereoRenderer,
+    WheelErrors,
+    WheelOdometryModel,
+)
 from sim.world.terrain import Terrain, generate_terrain
 from slam.agent import TeamMarker
+from slam.markers import DEFAULT_MIN_SIDE_PX
 from slam.stereo import StereoMatcher
 
 GROUND_TRUTH_RATE_HZ = 50.0
@@ -160,6 +174,7 @@ class RobotRuntime:
     imu_every: int
     camera_every: int
     renderers: list[StereoRenderer]
+    workers: list[int]  # the image pipeline's worker of each renderer (sim/run/pipeline.py)
     imaging: list[CameraImaging | None]  # per rig: image formation, None for ideal images
     matchers: list[StereoMatcher]
     odometry: WheelOdometryModel | None
@@ -171,6 +186,11 @@ class RobotRuntime:
     capture_truth: dict[int, tuple] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots, true depth or None
     recent_truth: deque = field(default_factory=deque)  # (t, R, v, biases) at the latest IMU samples, for OnboardStack.record
     dataset: DatasetWriter | None = None  # output.dataset: the robot's sensor data as it comes (sim/run/dataset.py)
+
+
+#: Image pipeline threads (sim/run/pipeline.py). One: on two cores a second drew no faster
+#: (llvmpipe already rasterises each image on both).
+IMAGE_WORKERS = 1
 
 
 class Timers:
@@ -201,11 +221,16 @@ class Run:
         recorder: Recorder | None = None,
         dataset: EurocDataset | None = None,
         image_observer: Callable[[MappedImage], None] | None = None,
+        image_workers: int | None = None,
     ):
         self.scenario = scenario
         self.image_observer = image_observer
         self.streams = RandomStreams(scenario.seed)
         self.timers = Timers()
+        if image_workers is None:  # measured compute times are the jobs' own wall times: inline
+            image_workers = 0 if scenario.compute.model == "measured" else IMAGE_WORKERS
+        self.images = ImagePipeline(image_workers, Timers() if image_workers else self.timers)
+        self._renderers = 0  # renderers made so far: each draws on worker (its index modulo the workers)
         self.memory = MemoryTrace()
         self.recorder = recorder
         self.dataset = dataset
@@ -234,6 +259,12 @@ class Run:
         self.team_markers = self._team_markers(robots)
         self.robots = {r.name: self._runtime(r) for r in robots}
         self._root_body = {r.name: self._robot_root_body(r) for r in robots}
+        model = self.world.model
+        materials = [model.material(k).name.rsplit("/", 1)[-1] for k in range(model.nmat)]  # robots' assets are prefixed
+        self._marker_geoms = np.array(
+            [g for g in range(model.ngeom) if model.geom_matid[g] >= 0 and materials[model.geom_matid[g]].startswith(MARKER_MATERIAL_PREFIX)],
+            dtype=int,
+        )
         self.network = Network(
             self.env,
             scenario.comms,
@@ -279,6 +310,11 @@ class Run:
         data.time = 0.0
         mujoco.mj_forward(model, data)
 
+    def _next_worker(self) -> int:
+        """Image workers in turn, one per renderer."""
+        self._renderers += 1
+        return (self._renderers - 1) % max(1, self.images.workers)
+
     def _every(self, rate_hz: float) -> int:
         """Control ticks per sample (the scenario checks that the rate divides the control rate)."""
         ticks = control_ticks(self.scenario.physics.control_rate_hz, rate_hz)
@@ -288,7 +324,9 @@ class Run:
     def _runtime(self, robot: Robot) -> RobotRuntime:
         cfg = robot.cfg
         cores = cfg.computer.cores or robot.default_cores
-        lane = Lane(self.env, robot.name, cores, cfg.computer.fpga, ComputeModel(self.scenario.compute), self.scenario.compute.max_queue)
+        lane = Lane(
+            self.env, robot.name, cores, cfg.computer.fpga, ComputeModel(self.scenario.compute), self.scenario.compute.max_queue, self.images.result
+        )
         realism = self.scenario.realism
         preset = cfg.imu.preset or robot.default_imu_preset
         imu_errors = ImuErrors.draw(realism.imu, self.streams.rng("imu_errors", robot.name))
@@ -327,6 +365,7 @@ class Run:
             imu_every=self._every(cfg.imu.rate_hz),
             camera_every=self._every(cfg.camera.rate_hz),
             renderers=renderers,
+            workers=[self._next_worker() for _ in renderers],
             imaging=imaging,
             matchers=matchers,
             odometry=odometry,
@@ -436,8 +475,11 @@ class Run:
             self.memory.poll(self.sim_time, force=True)
             if self.mission_s is None:  # the run failed before its routes ended
                 self.mission_s = self.sim_time
-            self.wall_s = time.perf_counter() - start + self.timers.seconds["setup"]
-            self.close()
+            try:
+                self.close()
+            finally:
+                self.wall_s = time.perf_counter() - start + self.timers.seconds["setup"]
+                self.timers.seconds["waiting"] += self.images.waited_s  # the loop blocked on the image pipeline
 
     def drain(self, seconds: float) -> None:
         """After :meth:`execute`: let the network deliver what is in flight and the lanes
@@ -448,12 +490,15 @@ class Run:
         self.sim_time = self.env.now
 
     def close(self) -> None:
-        """Release the renderers' GL contexts and close the dataset's files (``execute`` does this when it ends)."""
-        for runtime in self.robots.values():
-            for renderer in runtime.renderers:
-                renderer.close()
-        if self.dataset is not None:
-            self.dataset.close()
+        """Finish the image pipeline, release the renderers' GL contexts (in the thread that
+        drew) and close the dataset's files (``execute`` does this when it ends)."""
+        renderers = [(worker, renderer) for runtime in self.robots.values() for worker, renderer in zip(runtime.workers, runtime.renderers)]
+        workers = max(1, self.images.workers)
+        try:
+            self.images.close(last=lambda k: [renderer.close() for worker, renderer in renderers if worker % workers == k])
+        finally:
+            if self.dataset is not None:
+                self.dataset.close()
 
     def _physics(self, progress: ProgressCallback | None, progress_every_s: float):
         model, data = self.world.model, self.world.data
@@ -582,23 +627,24 @@ class Run:
                 self._capture(runtime, tick // runtime.camera_every, now)
 
     def _capture(self, runtime: RobotRuntime, frame: int, now: float) -> None:
+        """A stereo trigger: each rig's scene is snapshot now; drawing, exposure, marker search
+        and SGBM follow on the image pipeline (``sim/run/pipeline.py``), the jobs that use
+        them are submitted now."""
         camera = runtime.robot.cfg.camera
         every = camera.depth_ground_truth_every
         with_depth = every > 0 and frame % every == 0
         runtime.log.frames += 1
-        for renderer, imaging, matcher, rig in zip(runtime.renderers, runtime.imaging, runtime.matchers, runtime.robot.stereo_rigs):
+        images = self.images
+        cameras = zip(runtime.workers, runtime.renderers, runtime.imaging, runtime.matchers, runtime.robot.stereo_rigs)
+        for worker, renderer, imaging, matcher, rig in cameras:
             t = time.perf_counter()
-            stereo = renderer.render(self.world.data, with_depth=with_depth)
-            t = self.timers.add("rendering", t)
-            if runtime.faults is not None and runtime.faults.dark(rig.name, now):
-                stereo.left, stereo.right = np.zeros_like(stereo.left), np.zeros_like(stereo.right)
-            if imaging is not None:
-                rate = self._camera_rate(rig.left_camera) if imaging.params.motion_blur else None
-                exposure_s, gain = imaging.exposure_s, imaging.gain
-                stereo.left, stereo.right = imaging.expose(stereo.left, stereo.right, rate)
-                runtime.log.exposure[rig.name].append((exposure_s, gain, imaging.saturated_share))
-                self.timers.add("imaging", t)
+            request = renderer.snapshot(self.world.data, with_depth=with_depth)
+            dark = runtime.faults is not None and runtime.faults.dark(rig.name, now)
+            rate = self._camera_rate(rig.left_camera) if imaging is not None and imaging.params.motion_blur else None
+            self.timers.add("snapshot", t)
+            pair = images.start(worker, self._develop, runtime, renderer, imaging, rig, request, dark, rate)
             if self.recorder is not None and frame % self.scenario.output.recording_image_every == 0:
+                stereo = images.result(pair)
                 t = time.perf_counter()
                 self.recorder.log_frame(runtime.robot.name, rig, now, stereo)
                 self.timers.add("recording", t)
@@ -607,6 +653,7 @@ class Run:
             if onboard is not None or runtime.dataset is not None:
                 T_body_cam = self._believed_body_camera(runtime.robot, rig)
             if runtime.dataset is not None:
+                stereo = images.result(pair)
                 t = time.perf_counter()
                 runtime.dataset.stereo(rig.name, now, stereo.left, stereo.right, T_body_cam)
                 self.timers.add("dataset", t)
@@ -614,18 +661,43 @@ class Run:
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
                     if runtime.image_cells is not None:
-                        runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), stereo.depth)
-                onboard.detection(now, stereo.left, rig, T_body_cam)
+                        runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), pair)
+                search = images.job(worker, onboard.find_markers, rig, pair) if self._markers_in_view(runtime.robot, rig) else None
+                onboard.detection(now, rig, T_body_cam, search)
             job = runtime.lane.submit(
                 "stereo",
-                work=lambda m=matcher, s=stereo: self._timed("stereo", m.depth, s.left, s.right),
-                on_done=lambda depth, t_done, r=runtime, s=stereo, g=rig, f=frame, vo=for_vo, t0=now: self._stereo_done(
-                    r, g, s, depth, f if vo else None, t0
+                work=images.job(worker, self._stereo, matcher, pair),
+                on_done=lambda depth, t_done, r=runtime, p=pair, g=rig, f=frame, vo=for_vo, t0=now: self._stereo_done(
+                    r, g, images.result(p), depth, f if vo else None, t0
                 ),
                 device=Device.FPGA,
             )
             if job is None and for_vo:
                 runtime.onboard.stereo_dropped(frame)
+
+    def _develop(self, runtime: RobotRuntime, renderer: StereoRenderer, imaging: CameraImaging | None, rig: StereoRig,
+                 request: RenderRequest, dark: bool, rate: np.ndarray | None) -> StereoFrame:
+        """Draw a captured pair and form its images (image pipeline: in capture order)."""
+        timers = self.images.timers
+        t = time.perf_counter()
+        stereo = renderer.draw(request)
+        t = timers.add("rendering", t)
+        if dark:
+            stereo.left, stereo.right = np.zeros_like(stereo.left), np.zeros_like(stereo.right)
+        if imaging is not None:
+            exposure_s, gain = imaging.exposure_s, imaging.gain
+            stereo.left, stereo.right = imaging.expose(stereo.left, stereo.right, rate)
+            runtime.log.exposure[rig.name].append((exposure_s, gain, imaging.saturated_share))
+            timers.add("imaging", t)
+        return stereo
+
+    def _stereo(self, matcher: StereoMatcher, pair: Future) -> np.ndarray:
+        """SGBM depth of a pair (image pipeline)."""
+        stereo = pair.result()
+        t = time.perf_counter()
+        depth = matcher.depth(stereo.left, stereo.right)
+        self.images.timers.add("stereo", t)
+        return depth
 
     def _camera_rate(self, camera: str) -> np.ndarray:
         """True angular velocity of a camera in its own OpenCV axes (rad/s), for motion blur."""
@@ -642,6 +714,31 @@ class Run:
         T[:3, 3] = data.cam_xpos[cam]
         return T
 
+    def _markers_in_view(self, robot: Robot, rig: StereoRig) -> bool:
+        """Whether any marker not on ``robot`` may show in the left image of ``rig`` large
+        enough to be detected (true poses; conservative: the bounding sphere of the tag with
+        its quiet zone against the nominal view, occlusion ignored, the tag's whole width
+        against the detector's smallest side ``DEFAULT_MIN_SIDE_PX``)."""
+        geoms = self._marker_geoms[self.world.model.body_rootid[self.world.model.geom_bodyid[self._marker_geoms]] != self._root_body[robot.name]]
+        if geoms.size == 0:
+            return False
+        T = self._camera_pose(rig.left_camera)
+        p = (self.world.data.geom_xpos[geoms] - T[:3, 3]) @ T[:3, :3]  # marker centres in camera axes (OpenCV)
+        half = self.world.model.geom_size[geoms, 0]
+        radius = half * math.sqrt(2.0)
+        K = rig.intrinsics
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        x, y, z = p.T
+        inside = (
+            (fx * x + cx * z >= -radius * math.hypot(fx, cx))
+            & ((rig.width - cx) * z - fx * x >= -radius * math.hypot(fx, rig.width - cx))
+            & (fy * y + cy * z >= -radius * math.hypot(fy, cy))
+            & ((rig.height - cy) * z - fy * y >= -radius * math.hypot(fy, rig.height - cy))
+        )
+        near = z - radius
+        large_enough = (near <= 0) | (fx * 2 * half >= DEFAULT_MIN_SIDE_PX * near)
+        return bool(np.any(inside & (z + radius > 0) & large_enough))
+
     def _others(self, robot: Robot) -> list[tuple[np.ndarray, float]]:
         """The other robots' true xy with their body radii."""
         xpos = self.world.data.xpos
@@ -653,20 +750,15 @@ class Run:
         for stale in [k for k in runtime.capture_truth if k < frame_id]:  # frames never mapped
             del runtime.capture_truth[stale]
         if truth is not None:
+            T_world_cam, others, pair = truth
+            true_depth = self.images.result(pair).depth
             t = time.perf_counter()
-            T_world_cam, others, true_depth = truth
             cells = runtime.image_cells
             cells.add(depth, obstacle, T_world_cam, others, true_depth)
             if self.image_observer is not None:
                 name = runtime.robot.name
                 self.image_observer(MappedImage(name, frame_id, depth, obstacle, T_world_cam, others, true_depth, cells.calibration, cells.params))
             self.timers.add("evaluation", t)
-
-    def _timed(self, part: str, fn, *args):
-        t = time.perf_counter()
-        out = fn(*args)
-        self.timers.add(part, t)
-        return out
 
     def _stereo_done(self, runtime: RobotRuntime, rig: StereoRig, stereo, depth: np.ndarray, vo_frame: int | None, t_capture: float):
         if stereo.depth is not None:

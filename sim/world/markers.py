@@ -22,6 +22,7 @@ TAG_FAMILY = cv2.aruco.DICT_APRILTAG_36h11
 TAG_CELLS = 8  # 6x6 data cells plus the black border
 QUIET_CELLS = 1  # white cells around the black border
 MARKER_THICKNESS_M = 0.004
+MARKER_MATERIAL_PREFIX = "apriltag_"  # a marker geom's material: the prefix and its tag id
 
 
 @dataclass(frozen=True)
@@ -59,7 +60,7 @@ def _png_asset(image: np.ndarray) -> mjcf.Asset:
 def add_marker(body: mjcf.Element, spec: MarkerSpec) -> mjcf.Element:
     """Add the textured marker geom to ``body`` (visual only: no contacts, no mass)."""
     root = body.root
-    texture_name = f"apriltag_{spec.tag_id}"
+    texture_name = f"{MARKER_MATERIAL_PREFIX}{spec.tag_id}"
     if root.asset.find("texture", texture_name) is None:
         root.asset.add("texture", name=texture_name, type="2d", file=_png_asset(apriltag_image(spec.tag_id)))
         root.asset.add("material", name=texture_name, texture=texture_name, specular=0.0, shininess=0.0)

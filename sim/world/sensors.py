@@ -30,6 +30,8 @@
 from __future__ import annotations
 
 import math
+import queue
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar, Protocol, Self
@@ -299,24 +301,25 @@ class StereoFrame:
 
 
 class _RenderTarget:
-    """One GL context + MuJoCo render context + scene, shared by every
-    :class:`StereoRenderer` of the same model and image size (reference counted)."""
+    """One GL context + MuJoCo render context per (model, image size, thread), shared by
+    every :class:`StereoRenderer` that draws in that thread (reference counted). A GL
+    context is current in one thread at a time, so a thread that draws has its own."""
 
-    _registry: ClassVar[dict[tuple[int, int, int], _RenderTarget]] = {}
+    _registry: ClassVar[dict[tuple[int, int, int, int], _RenderTarget]] = {}
 
     @classmethod
     def acquire(cls, model: mujoco.MjModel, width: int, height: int) -> _RenderTarget:
-        key = (id(model), width, height)
+        key = (id(model), width, height, threading.get_ident())
         target = cls._registry.get(key)
         if target is None:
-            target = cls(model, width, height)
+            target = cls(model, width, height, key)
             cls._registry[key] = target
         target.users += 1
         return target
 
-    def __init__(self, model: mujoco.MjModel, width: int, height: int):
+    def __init__(self, model: mujoco.MjModel, width: int, height: int, key: tuple[int, int, int, int]):
         self.model = model  # keeps the model alive while the key (its id) is in use
-        self.key = (id(model), width, height)
+        self.key = key
         self.width, self.height = width, height
         self.users = 0
         glob = model.vis.global_
@@ -328,12 +331,9 @@ class _RenderTarget:
         self.context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.context)
         self.context.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
-        self.scene = mujoco.MjvScene(model, maxgeom=10000)
-        self.option = mujoco.MjvOption()
         self.rect = mujoco.MjrRect(0, 0, width, height)
         self.rgb = np.empty((height, width, 3), np.uint8)
         self.zbuf = np.empty((height, width), np.float32)
-        self.tiles = TerrainTiles.from_model(model)
 
     def make_current(self) -> None:
         # always: other code (a mujoco.Renderer, another target) may have switched contexts
@@ -350,6 +350,37 @@ class _RenderTarget:
         self.gl.free()
 
 
+#: The GL cameras of a scene's two eyes (MuJoCo renders a mono image from both): position, forward, up.
+_Eyes = tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
+
+
+def _eyes(scene: mujoco.MjvScene) -> _Eyes:
+    return tuple((c.pos.copy(), c.forward.copy(), c.up.copy()) for c in scene.camera)
+
+
+def _set_eyes(scene: mujoco.MjvScene, eyes: _Eyes) -> None:
+    for camera, (pos, forward, up) in zip(scene.camera, eyes):
+        camera.pos, camera.forward, camera.up = pos, forward, up
+
+
+@dataclass
+class RenderRequest:
+    """A stereo pair as the world stood when it was captured (:meth:`StereoRenderer.snapshot`):
+    the scene with the left camera, the right camera's eyes, and the depth range, for
+    :meth:`StereoRenderer.draw` in any thread, later."""
+
+    scene: mujoco.MjvScene
+    left: _Eyes
+    right: _Eyes
+    near_m: float
+    far_m: float
+    with_depth: bool
+
+
+#: Scenes per renderer: one being drawn while the next is snapshot (a third snapshot waits for a draw).
+SCENES_PER_RENDERER = 2
+
+
 class StereoRenderer:
     """Renders the rectified stereo pair ``rig`` of a compiled model.
 
@@ -359,16 +390,22 @@ class StereoRenderer:
     the left camera's x with the same orientation: checked, :class:`SensorError`
     otherwise), or, given the rig's calibration ``error``, match it changed by that
     error. ``camera`` gives the colour mode and the depth range: before each
-    render ``model.vis.map.znear * model.stat.extent`` is set to ``camera.znear_m`` (the
+    snapshot ``model.vis.map.znear * model.stat.extent`` is set to ``camera.znear_m`` (the
     near plane is the camera's own even when one model serves cameras with different
     settings), and the far plane to ``SKY_FAR_FACTOR * camera.zfar_m``; ground-truth
     depth beyond ``camera.zfar_m`` is reported as ``inf`` (the skybox has depth in
     MuJoCo, at 0.5..1 x the far plane, and must not pass for terrain).
 
+    :meth:`render` = :meth:`draw` of a :meth:`snapshot`. The snapshot reads the simulation
+    state (``mjv_updateScene``, the terrain tiles, the right camera) and must be taken when
+    the pair is captured; the draw only needs the snapshot and may run later in another
+    thread (``sim/run/pipeline.py``): the GL work releases Python's GIL. All draws of
+    one renderer happen in one thread, which also :meth:`close` s it.
+
     Fast on CPU: the terrain drawn as tiles culled to the view, at levels of detail
     (:mod:`sim.world.terrain_tiles`, when the model has them and no light casts shadows),
     reflections off, shadows only if a light casts them, MSAA off (``vis.quality.offsamples = 0``,
-    set before the render context is made), one GL context per (model, width, height)
+    set before the render context is made), one GL context per (model, width, height, thread)
     shared by all renderers, and the ground-truth depth is read from the depth buffer
     of the left image's own pass. Call :meth:`close` when done (EGL teardown).
     """
@@ -398,7 +435,13 @@ class StereoRenderer:
             self._mjv_cams.append(cam)
         self._geometry_checked = False
         self._shadows = int(bool(np.any(model.light_castshadow)) and model.vis.quality.shadowsize > 0)
-        self._target: _RenderTarget | None = _RenderTarget.acquire(model, rig.width, rig.height)
+        self._option = mujoco.MjvOption()
+        self._tiles = TerrainTiles.from_model(model)
+        self._free_scenes: queue.SimpleQueue[mujoco.MjvScene] = queue.SimpleQueue()
+        for _ in range(SCENES_PER_RENDERER):
+            self._free_scenes.put(mujoco.MjvScene(model, maxgeom=10000))
+        self._target: _RenderTarget | None = None  # acquired by the first draw, in the thread that draws
+        self._closed = False
 
     def _camera_id(self, name: str) -> int:
         cid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, name)
@@ -438,33 +481,55 @@ class StereoRenderer:
 
     def render(self, data: mujoco.MjData, with_depth: bool = False) -> StereoFrame:
         """Render the pair at the state in ``data`` (kinematics must be current, as after ``mj_step``)."""
-        t = self._target
-        if t is None:
+        return self.draw(self.snapshot(data, with_depth))
+
+    def snapshot(self, data: mujoco.MjData, with_depth: bool = False) -> RenderRequest:
+        """The pair's scene at the state in ``data``; waits while both of this renderer's
+        scenes are still to be drawn."""
+        if self._closed:
             raise SensorError(f"StereoRenderer of rig {self.rig.name!r} was closed")
         if not self._geometry_checked:
             self._check_geometry(data)
         m = self.model
         m.vis.map.znear = self.camera.znear_m / m.stat.extent
         m.vis.map.zfar = SKY_FAR_FACTOR * self.camera.zfar_m / m.stat.extent
-        t.make_current()
-        scene = t.scene
-        mujoco.mjv_updateScene(m, data, t.option, None, self._mjv_cams[0], mujoco.mjtCatBit.mjCAT_ALL, scene)
+        scene = self._free_scenes.get()
+        mujoco.mjv_updateScene(m, data, self._option, None, self._mjv_cams[0], mujoco.mjtCatBit.mjCAT_ALL, scene)
         scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self._shadows
         scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-        if t.tiles is not None and not self._shadows:  # with shadows: the hfield (sim/world/terrain_tiles.py)
+        if self._tiles is not None and not self._shadows:  # with shadows: the hfield (sim/world/terrain_tiles.py)
             cam = self._cam_ids[0]
-            chosen = t.tiles.select(data.cam_xpos[cam], data.cam_xmat[cam], float(m.cam_fovy[cam]), t.width / t.height,
-                                    t.height, self.near_m, self.far_m, margin=self.rig.baseline_m)
-            t.tiles.replace_hfield(scene, chosen)
-        mujoco.mjr_render(t.rect, scene, t.context)
-        mujoco.mjr_readPixels(t.rgb, t.zbuf if with_depth else None, t.rect, t.context)
-        left = self._image(t.rgb)
-        depth = self._linear_depth(t.zbuf) if with_depth else None
+            chosen = self._tiles.select(data.cam_xpos[cam], data.cam_xmat[cam], float(m.cam_fovy[cam]), self.rig.width / self.rig.height,
+                                        self.rig.height, self.near_m, self.far_m, margin=self.rig.baseline_m)
+            self._tiles.replace_hfield(scene, chosen)
+        left = _eyes(scene)
         # the right camera sees the same scene: only the camera changes
         mujoco.mjv_updateCamera(m, data, self._mjv_cams[1], scene)
-        mujoco.mjr_render(t.rect, scene, t.context)
-        mujoco.mjr_readPixels(t.rgb, None, t.rect, t.context)
-        right = self._image(t.rgb)
+        return RenderRequest(scene, left, _eyes(scene), self.near_m, self.far_m, with_depth)
+
+    def draw(self, request: RenderRequest) -> StereoFrame:
+        """Render a :meth:`snapshot` (in the thread that draws all of this renderer's pairs)."""
+        if self._closed:
+            raise SensorError(f"StereoRenderer of rig {self.rig.name!r} was closed")
+        t = self._target
+        if t is None:
+            t = self._target = _RenderTarget.acquire(self.model, self.rig.width, self.rig.height)
+        elif t.key[3] != threading.get_ident():
+            raise SensorError(f"StereoRenderer of rig {self.rig.name!r} draws in one thread; it drew in another before")
+        scene = request.scene
+        try:
+            t.make_current()
+            _set_eyes(scene, request.left)
+            mujoco.mjr_render(t.rect, scene, t.context)
+            mujoco.mjr_readPixels(t.rgb, t.zbuf if request.with_depth else None, t.rect, t.context)
+            left = self._image(t.rgb)
+            depth = self._linear_depth(t.zbuf, request.near_m, request.far_m) if request.with_depth else None
+            _set_eyes(scene, request.right)
+            mujoco.mjr_render(t.rect, scene, t.context)
+            mujoco.mjr_readPixels(t.rgb, None, t.rect, t.context)
+            right = self._image(t.rgb)
+        finally:
+            self._free_scenes.put(scene)
         return StereoFrame(left, right, depth)
 
     def _image(self, rgb: np.ndarray) -> np.ndarray:
@@ -473,11 +538,9 @@ class StereoRenderer:
             return cv2.flip(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), 0)
         return cv2.flip(rgb, 0)
 
-    def _linear_depth(self, zbuf: np.ndarray) -> np.ndarray:
+    def _linear_depth(self, zbuf: np.ndarray, near: float, far: float) -> np.ndarray:
         """Window depth (reversed z, 1 at the near plane, 0 at the far plane; MuJoCo's
         ``mjDEPTH_ZEROFAR`` read-out, as in ``mujoco.Renderer``) to eye-space z in metres."""
-        near = self.near_m
-        far = self.far_m
         c = 0.5 * (far + near) / (far - near) - 0.5  # = near / (far - near)
         d = far * near / (far - near)
         z = d / (zbuf.astype(np.float64) + c)
@@ -485,9 +548,13 @@ class StereoRenderer:
         return cv2.flip(z.astype(np.float32), 0)
 
     def close(self) -> None:
+        """Release the GL context, in the thread that drew (idempotent)."""
         if self._target is not None:
+            if self._target.key[3] != threading.get_ident():
+                raise SensorError(f"StereoRenderer of rig {self.rig.name!r}: close it in the thread that drew with it")
             self._target.release()
             self._target = None
+        self._closed = True
 
     def __enter__(self) -> Self:
         return self
