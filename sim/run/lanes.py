@@ -98,7 +98,8 @@ class Lane:
 
     A job's ``work`` runs when the job starts. If it returns a :class:`Future` (work handed
     to the image pipeline's worker thread, ``sim/run/pipeline.py``), the lane takes the
-    result through ``resolve`` when the job finishes in simulated time, before ``on_done``."""
+    result through ``resolve`` when the job finishes in simulated time, before ``on_done``;
+    with ``wait=False`` it hands ``on_done`` the future itself (a result only evaluation reads)."""
 
     def __init__(
         self,
@@ -148,6 +149,7 @@ class Lane:
         on_done: Callable[[Any, float], None] | None = None,
         priority: Priority = Priority.REALTIME,
         device: str = Device.CPU,
+        wait: bool = True,
     ) -> simpy.Process | None:
         if self.halted:
             return None
@@ -165,7 +167,7 @@ class Lane:
         waits = not request.triggered
         queue.waiting += waits
         self._active[priority] += 1
-        process = self.env.process(self._run(resource, request, waits, queue, record, work, on_done, priority))
+        process = self.env.process(self._run(resource, request, waits, queue, record, work, on_done, priority, wait))
         request.proc = process  # made outside the job's process: preemption must interrupt the job
         return process
 
@@ -187,7 +189,7 @@ class Lane:
             except simpy.Interrupt:
                 request = self._request(resource, priority)
 
-    def _run(self, resource, request, waits: bool, queue: _StageQueue, record: JobRecord, work, on_done, priority: Priority):
+    def _run(self, resource, request, waits: bool, queue: _StageQueue, record: JobRecord, work, on_done, priority: Priority, wait: bool):
         try:
             request = yield from self._acquire(resource, request, priority)
             queue.waiting -= waits
@@ -208,7 +210,7 @@ class Lane:
                 except simpy.Interrupt:  # preempted by a real-time job: queue for the rest
                     left -= self.env.now - start
                     request = yield from self._acquire(resource, self._request(resource, priority), priority)
-            if isinstance(result, Future):
+            if wait and isinstance(result, Future):
                 result = self.resolve(result)
             record.finished = self.env.now
             self.busy_s[record.device] += record.compute_s

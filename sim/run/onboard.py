@@ -283,12 +283,17 @@ class OnboardStack:
         the markers found, with its state then, is done when the job ends. ``search`` None:
         no marker can show in the image (``Run._markers_in_view``, from the true poses) and
         the simulator skips the search, which would find none; the job and its modelled time stay."""
-        if self.detect_markers and self.estimator.initialised:
+        if self.detecting:
             self.lane.submit(
                 "detection",
                 work=search or list,
                 on_done=lambda found, t: self._send(self.agent.detections_from(now, found, rig.name, T_body_cam)),
             )
+
+    @property
+    def detecting(self) -> bool:
+        """Whether the robot searches its images for markers now (:meth:`detection`)."""
+        return self.detect_markers and self.estimator.initialised
 
     def find_markers(self, rig: StereoRig, pair: Future) -> list[MarkerDetection]:
         """The team's markers in the left image of ``pair`` (a future :class:`~sim.world.sensors.StereoFrame` of ``rig``)."""

@@ -8,7 +8,9 @@ is captured (:meth:`sim.world.sensors.StereoRenderer.snapshot`); the worker does
 rest in submission order (one thread: each camera's auto exposure and noise draws see
 the same sequence as inline), and a lane job whose work was handed to the worker gets
 its result when the job finishes in simulated time (:meth:`sim.run.lanes.Lane.submit`),
-where the loop waits for it if the worker is behind. A run gives the same metrics
+where the loop waits for it if the worker is behind. Work whose inputs are fixed when
+its job is submitted starts on the worker then (:meth:`ImagePipeline.job`), so a pair's
+SGBM follows its own drawing rather than every pair of that instant. A run gives the same metrics
 threaded or inline (``tests/test_pipeline.py``).
 
 Inline (``workers=0``) everything runs on the loop's thread as it is asked for: the
@@ -56,11 +58,14 @@ class ImagePipeline:
         return future
 
     def job(self, worker: int, fn: Callable[..., T], *args) -> Callable[[], Any]:
-        """The work of a lane job: threaded, ``fn`` starts on ``worker`` when the job starts
-        and the lane takes its result when the job finishes; inline, the job runs it."""
+        """The work of a lane job whose inputs are all given now: threaded, ``fn`` starts on
+        ``worker`` now and the job's work is its future (the lane takes the result when the
+        job finishes; a job dropped by a full queue wasted it); inline, the job runs ``fn``
+        when it starts (so ``compute.model: measured`` times it)."""
         if not self._executors:
             return lambda: fn(*args)
-        return lambda: self.start(worker, fn, *args)
+        future = self.start(worker, fn, *args)
+        return lambda: future
 
     def result(self, value: Future | T) -> T:
         """``value``'s result, waiting for the worker if it is not done yet."""

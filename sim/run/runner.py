@@ -186,6 +186,7 @@ class RobotRuntime:
     capture_truth: dict[int, tuple] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots, true depth or None
     recent_truth: deque = field(default_factory=deque)  # (t, R, v, biases) at the latest IMU samples, for OnboardStack.record
     dataset: DatasetWriter | None = None  # output.dataset: the robot's sensor data as it comes (sim/run/dataset.py)
+    unscored_depths: deque = field(default_factory=deque)  # (rig, pair, depth) of finished stereo jobs not scored yet (Run._score_depths)
 
 
 #: Image pipeline threads (sim/run/pipeline.py). One: on two cores a second drew no faster
@@ -488,6 +489,8 @@ class Run:
         with the same graph."""
         self.env.run(until=self.env.now + seconds)
         self.sim_time = self.env.now
+        for runtime in self.robots.values():
+            self._score_depths(runtime, all_of_them=True)
 
     def close(self) -> None:
         """Finish the image pipeline, release the renderers' GL contexts (in the thread that
@@ -496,6 +499,8 @@ class Run:
         workers = max(1, self.images.workers)
         try:
             self.images.close(last=lambda k: [renderer.close() for worker, renderer in renderers if worker % workers == k])
+            for runtime in self.robots.values():
+                self._score_depths(runtime, all_of_them=True)
         finally:
             if self.dataset is not None:
                 self.dataset.close()
@@ -662,18 +667,18 @@ class Run:
                     onboard.capture(frame, now, T_body_cam)
                     if runtime.image_cells is not None:
                         runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), pair)
-                search = images.job(worker, onboard.find_markers, rig, pair) if self._markers_in_view(runtime.robot, rig) else None
-                onboard.detection(now, rig, T_body_cam, search)
-            job = runtime.lane.submit(
-                "stereo",
-                work=images.job(worker, self._stereo, matcher, pair),
-                on_done=lambda depth, t_done, r=runtime, p=pair, g=rig, f=frame, vo=for_vo, t0=now: self._stereo_done(
-                    r, g, images.result(p), depth, f if vo else None, t0
-                ),
-                device=Device.FPGA,
-            )
+                if onboard.detecting:
+                    search = images.job(worker, onboard.find_markers, rig, pair) if self._markers_in_view(runtime.robot, rig) else None
+                    onboard.detection(now, rig, T_body_cam, search)
+            if for_vo:
+                on_done = lambda depth, t_done, r=runtime, p=pair, g=rig, f=frame, t0=now: self._stereo_done(r, g, images.result(p), depth, f, t0)  # noqa: E731
+            else:  # the depth is only scored: whenever the worker has it (Run._score_depths)
+                on_done = lambda depth, t_done, r=runtime, p=pair, g=rig: r.unscored_depths.append((g.name, p, depth))  # noqa: E731
+            work = images.job(worker, self._stereo, matcher, pair)
+            job = runtime.lane.submit("stereo", work=work, on_done=on_done, device=Device.FPGA, wait=for_vo)
             if job is None and for_vo:
                 runtime.onboard.stereo_dropped(frame)
+        self._score_depths(runtime)
 
     def _develop(self, runtime: RobotRuntime, renderer: StereoRenderer, imaging: CameraImaging | None, rig: StereoRig,
                  request: RenderRequest, dark: bool, rate: np.ndarray | None) -> StereoFrame:
@@ -760,10 +765,22 @@ class Run:
                 self.image_observer(MappedImage(name, frame_id, depth, obstacle, T_world_cam, others, true_depth, cells.calibration, cells.params))
             self.timers.add("evaluation", t)
 
-    def _stereo_done(self, runtime: RobotRuntime, rig: StereoRig, stereo, depth: np.ndarray, vo_frame: int | None, t_capture: float):
+    def _stereo_done(self, runtime: RobotRuntime, rig: StereoRig, stereo: StereoFrame, depth: np.ndarray, vo_frame: int, t_capture: float):
         if stereo.depth is not None:
             t = time.perf_counter()
             runtime.log.depth_error[rig.name].add(depth, stereo.depth)
             self.timers.add("evaluation", t)
-        if vo_frame is not None:
-            runtime.onboard.depth_ready(vo_frame, t_capture, stereo.left, stereo.right, depth)
+        runtime.onboard.depth_ready(vo_frame, t_capture, stereo.left, stereo.right, depth)
+
+    def _score_depths(self, runtime: RobotRuntime, all_of_them: bool = False) -> None:
+        """Score the depth of the finished stereo jobs of rigs other than the VO rig against
+        the rendered truth, in the order the jobs finished: those the worker is done with
+        (all, when the run ends)."""
+        pending = runtime.unscored_depths
+        while pending and (all_of_them or not isinstance(pending[0][2], Future) or pending[0][2].done()):
+            rig, pair, depth = pending.popleft()
+            stereo, depth = self.images.result(pair), self.images.result(depth)
+            if stereo.depth is not None:
+                t = time.perf_counter()
+                runtime.log.depth_error[rig].add(depth, stereo.depth)
+                self.timers.add("evaluation", t)
