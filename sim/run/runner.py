@@ -633,27 +633,36 @@ class Run:
 
     def _capture(self, runtime: RobotRuntime, frame: int, now: float) -> None:
         """A stereo trigger: each rig's scene is snapshot now; drawing, exposure, marker search
-        and SGBM follow on the image pipeline (``sim/run/pipeline.py``), the jobs that use
-        them are submitted now."""
+        and SGBM follow on the image pipeline (``sim/run/pipeline.py``; the VO rig's first, the
+        loop waits for its depth soonest), the jobs that use them are submitted now, rig by rig."""
         camera = runtime.robot.cfg.camera
         every = camera.depth_ground_truth_every
         with_depth = every > 0 and frame % every == 0
         runtime.log.frames += 1
-        images = self.images
-        cameras = zip(runtime.workers, runtime.renderers, runtime.imaging, runtime.matchers, runtime.robot.stereo_rigs)
-        for worker, renderer, imaging, matcher, rig in cameras:
+        images, onboard = self.images, runtime.onboard
+        cameras = list(zip(runtime.workers, runtime.renderers, runtime.imaging, runtime.matchers, runtime.robot.stereo_rigs))
+        requests = []
+        for _, renderer, imaging, _, rig in cameras:
             t = time.perf_counter()
             request = renderer.snapshot(self.world.data, with_depth=with_depth)
             dark = runtime.faults is not None and runtime.faults.dark(rig.name, now)
             rate = self._camera_rate(rig.left_camera) if imaging is not None and imaging.params.motion_blur else None
+            requests.append((request, dark, rate))
             self.timers.add("snapshot", t)
-            pair = images.start(worker, self._develop, runtime, renderer, imaging, rig, request, dark, rate)
+        pairs, depths, searches = {}, {}, {}
+        for k in sorted(range(len(cameras)), key=lambda k: onboard is None or cameras[k][4] is not onboard.vo_rig):
+            worker, renderer, imaging, matcher, rig = cameras[k]
+            pairs[k] = images.start(worker, self._develop, runtime, renderer, imaging, rig, *requests[k])
+            depths[k] = images.job(worker, self._stereo, matcher, pairs[k])
+            if onboard is not None and onboard.detecting and self._markers_in_view(runtime.robot, rig):
+                searches[k] = images.job(worker, onboard.find_markers, rig, pairs[k])
+        for k, (_, _, _, _, rig) in enumerate(cameras):
+            pair = pairs[k]
             if self.recorder is not None and frame % self.scenario.output.recording_image_every == 0:
                 stereo = images.result(pair)
                 t = time.perf_counter()
                 self.recorder.log_frame(runtime.robot.name, rig, now, stereo)
                 self.timers.add("recording", t)
-            onboard = runtime.onboard
             for_vo = onboard is not None and rig is onboard.vo_rig
             if onboard is not None or runtime.dataset is not None:
                 T_body_cam = self._believed_body_camera(runtime.robot, rig)
@@ -668,16 +677,14 @@ class Run:
                     if runtime.image_cells is not None:
                         runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), pair)
                 if onboard.detecting:
-                    search = images.job(worker, onboard.find_markers, rig, pair) if self._markers_in_view(runtime.robot, rig) else None
-                    onboard.detection(now, rig, T_body_cam, search)
+                    onboard.detection(now, rig, T_body_cam, searches.get(k))
             if for_vo:
                 on_done = lambda depth, t_done, r=runtime, p=pair, g=rig, f=frame, t0=now: self._stereo_done(r, g, images.result(p), depth, f, t0)  # noqa: E731
             else:  # the depth is only scored: whenever the worker has it (Run._score_depths)
                 on_done = lambda depth, t_done, r=runtime, p=pair, g=rig: r.unscored_depths.append((g.name, p, depth))  # noqa: E731
-            work = images.job(worker, self._stereo, matcher, pair)
-            job = runtime.lane.submit("stereo", work=work, on_done=on_done, device=Device.FPGA, wait=for_vo)
+            job = runtime.lane.submit("stereo", work=depths[k], on_done=on_done, device=Device.FPGA, wait=for_vo)
             if job is None and for_vo:
-                runtime.onboard.stereo_dropped(frame)
+                onboard.stereo_dropped(frame)
         self._score_depths(runtime)
 
     def _develop(self, runtime: RobotRuntime, renderer: StereoRenderer, imaging: CameraImaging | None, rig: StereoRig,
