@@ -39,6 +39,7 @@ bench: setup
 	$(BIN)/python -m slam.bench --out results/bench/graph.json
 	$(BIN)/python -m sim.tools.match_bench --out results/bench/matching.json
 	$(BIN)/python -m sim.tools.batch_bench --out results/bench/batch.json
+	$(BIN)/python -m sim.tools.team_bench --sizes 1 2 4 8 --duration 30 --out results/bench/team
 	# one simulated hour of three robots (about 90 min of wall time): metrics.json runtime.memory
 	$(BIN)/marsyard run scenarios/soak.yaml --out results/bench/soak --no-progress
 
