@@ -9,6 +9,7 @@ import pytest
 from sim.run.pipeline import ImagePipeline
 from sim.run.runner import Run, Timers
 from sim.scenario import load_scenario
+from sim.world.sensors import SensorError
 from tests.test_slam_run import ENCOUNTER
 
 
@@ -70,3 +71,16 @@ def test_the_marker_search_is_skipped_only_where_it_finds_nothing(monkeypatch):
     assert len(with_markers) >= 10, records
     assert all(with_markers)
     assert sum(not v for v in without) >= 0.5 * len(without), (sum(without), len(without))
+
+
+def test_a_run_closes_a_renderer_a_tool_drew_with_on_the_loop_s_thread():
+    """sim/tools/render_bench.py draws with a run's renderer itself; the run's close must
+    release that context on this thread and the others on the worker."""
+    run = Run(load_scenario("scenarios/quickstart.yaml", ["output.recording=false"]))
+    renderer = next(iter(run.robots.values())).renderers[0]
+    renderer.render(run.world.data)
+    assert renderer.drawing_thread == threading.get_ident()
+    run.close()
+    assert renderer.drawing_thread is None
+    with pytest.raises(SensorError, match="closed"):
+        renderer.render(run.world.data)

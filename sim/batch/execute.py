@@ -63,15 +63,16 @@ class Outcome:
     wall_s: float | None = None
 
 
-def run_spec(spec: RunSpec, folder: Path) -> Outcome:
-    """Run one spec into ``folder``: load its scenario, run it, say how it went."""
+def run_spec(spec: RunSpec, folder: Path, image_workers: int | None = None) -> Outcome:
+    """Run one spec into ``folder``: load its scenario, run it, say how it went. ``image_workers``:
+    the run's image pipeline threads (``sim.run.runner.Run``; None: its default)."""
     from sim.run.run_folder import RunSetupError, run_to_folder
     from sim.scenario import load_scenario
 
     t0 = time.perf_counter()
     try:
         scenario = load_scenario(scenario_dict(spec.raw, spec.robots), spec.overrides, spec.base_dir)
-        metrics = run_to_folder(scenario, folder)
+        metrics = run_to_folder(scenario, folder, image_workers=image_workers)
         outcome = Outcome(metrics["status"], metrics["error"])
     except RunSetupError as exc:
         outcome = Outcome("failed", f"setup: {exc}")
@@ -175,10 +176,10 @@ StartHook = Callable[[RunSpec], None]
 FinishHook = Callable[[RunSpec, Outcome], None]
 
 
-def _child(spec: RunSpec, folder: str, conn) -> None:
+def _child(spec: RunSpec, folder: str, conn, image_workers: int | None) -> None:
     try:
         _log_to(Path(folder))
-        outcome = run_spec(spec, Path(folder))
+        outcome = run_spec(spec, Path(folder), image_workers)
     except BaseException as exc:  # KeyboardInterrupt included: the parent decides what it means
         outcome = Outcome("crashed", f"{type(exc).__name__}: {exc}")
     conn.send(asdict(outcome))
@@ -208,6 +209,9 @@ def run_local(specs: list[RunSpec], out: Path, workers: int, on_start: StartHook
     that has imported the simulator; a run past its timeout is killed."""
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(["sim.batch.execute", "sim.batch.preload"])
+    # runs that fill the cores form their images inline: the image thread only pays where a core is spare
+    # (two workers on two cores: 552 and 564 runs/h inline against 462 and 520 threaded, sim/tools/batch_bench.py)
+    image_workers = 0 if workers >= (os.cpu_count() or 1) else None
     queue = list(reversed(specs))
     running: dict[Any, tuple[Any, Any, RunSpec, float]] = {}  # process sentinel -> (process, connection, spec, start)
     try:
@@ -215,7 +219,8 @@ def run_local(specs: list[RunSpec], out: Path, workers: int, on_start: StartHook
             while queue and len(running) < workers:
                 spec = queue.pop()
                 receive, send = ctx.Pipe(duplex=False)
-                process = ctx.Process(target=_child, args=(spec, str(out / spec.folder), send), name=f"marsyard {spec.id}", daemon=True)
+                args = (spec, str(out / spec.folder), send, image_workers)
+                process = ctx.Process(target=_child, args=args, name=f"marsyard {spec.id}", daemon=True)
                 on_start(spec)
                 process.start()
                 send.close()
@@ -247,7 +252,7 @@ def _ray_task(spec: RunSpec) -> tuple[dict[str, Any], bytes]:
     with tempfile.TemporaryDirectory(prefix="marsyard-") as tmp:
         folder = Path(tmp) / "run"
         _log_to(folder)
-        outcome = run_spec(spec, folder)
+        outcome = run_spec(spec, folder, image_workers=0)  # one CPU per task: images inline
         buffer = io.BytesIO()
         with tarfile.open(fileobj=buffer, mode="w") as tar:
             if folder.exists():

@@ -39,8 +39,9 @@ class RunProgress(Protocol):
     def simulating(self, scenario: Scenario) -> AbstractContextManager[ProgressCallback | None]: ...
 
 
-def run_to_folder(scenario: Scenario, out: Path, progress: RunProgress | None = None) -> dict[str, Any]:
-    """Run ``scenario`` and write its results folder ``out``; return the metrics dict."""
+def run_to_folder(scenario: Scenario, out: Path, progress: RunProgress | None = None, image_workers: int | None = None) -> dict[str, Any]:
+    """Run ``scenario`` and write its results folder ``out``; return the metrics dict. ``image_workers``:
+    the run's image pipeline threads (``sim.run.runner.Run``; None: its default)."""
     results_folder.prepare(out, scenario)
     recorder = (
         Recorder(out / "recording.rrd", f"{scenario.name}-seed{scenario.seed}", scenario.output.recording_image_scale)
@@ -50,7 +51,7 @@ def run_to_folder(scenario: Scenario, out: Path, progress: RunProgress | None = 
     dataset = EurocDataset(out / DATASET_FOLDER) if scenario.output.dataset == "euroc" else None
     with progress.building(scenario) if progress else nullcontext():
         try:
-            simulation = Run(scenario, recorder, dataset)
+            simulation = Run(scenario, recorder, dataset, image_workers=image_workers)
         except Exception as exc:
             (out / "error.txt").write_text(traceback.format_exc())
             if recorder is not None:

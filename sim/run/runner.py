@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
+import threading
 import time
 from collections import defaultdict, deque
 from collections.abc import Callable
@@ -189,9 +191,10 @@ class RobotRuntime:
     unscored_depths: deque = field(default_factory=deque)  # (rig, pair, depth) of finished stereo jobs not scored yet (Run._score_depths)
 
 
-#: Image pipeline threads (sim/run/pipeline.py). One: on two cores a second drew no faster
-#: (llvmpipe already rasterises each image on both).
-IMAGE_WORKERS = 1
+#: Image pipeline threads (sim/run/pipeline.py), unless the environment's ``MARSYARD_IMAGE_WORKERS``
+#: says otherwise (0: inline). One: on two cores a second drew no faster (llvmpipe already
+#: rasterises each image on both).
+IMAGE_WORKERS = int(os.environ.get("MARSYARD_IMAGE_WORKERS", "1"))
 
 
 class Timers:
@@ -497,8 +500,16 @@ class Run:
         drew) and close the dataset's files (``execute`` does this when it ends)."""
         renderers = [(worker, renderer) for runtime in self.robots.values() for worker, renderer in zip(runtime.workers, runtime.renderers)]
         workers = max(1, self.images.workers)
+
+        def close_drawn_here(k: int) -> None:
+            for worker, renderer in renderers:
+                if worker % workers == k and renderer.drawing_thread in (None, threading.get_ident()):
+                    renderer.close()
+
         try:
-            self.images.close(last=lambda k: [renderer.close() for worker, renderer in renderers if worker % workers == k])
+            self.images.close(last=close_drawn_here)
+            for _, renderer in renderers:  # those a tool drew with on this thread (sim/tools/render_bench.py)
+                renderer.close()
             for runtime in self.robots.values():
                 self._score_depths(runtime, all_of_them=True)
         finally:

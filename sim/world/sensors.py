@@ -514,7 +514,7 @@ class StereoRenderer:
         t = self._target
         if t is None:
             t = self._target = _RenderTarget.acquire(self.model, self.rig.width, self.rig.height)
-        elif t.key[3] != threading.get_ident():
+        elif self.drawing_thread != threading.get_ident():
             raise SensorError(f"StereoRenderer of rig {self.rig.name!r} draws in one thread; it drew in another before")
         scene = request.scene
         try:
@@ -547,10 +547,15 @@ class StereoRenderer:
         z[z > self.camera.zfar_m] = np.inf  # sky, or nothing within the camera's range
         return cv2.flip(z.astype(np.float32), 0)
 
+    @property
+    def drawing_thread(self) -> int | None:
+        """The thread that draws this renderer's pairs (``threading.get_ident``), None before the first draw."""
+        return None if self._target is None else self._target.key[3]
+
     def close(self) -> None:
         """Release the GL context, in the thread that drew (idempotent)."""
         if self._target is not None:
-            if self._target.key[3] != threading.get_ident():
+            if self.drawing_thread != threading.get_ident():
                 raise SensorError(f"StereoRenderer of rig {self.rig.name!r}: close it in the thread that drew with it")
             self._target.release()
             self._target = None
