@@ -264,15 +264,11 @@ class Agent:
         cov = switch_pose3_covariance(switch.T_old_new, switch.cov_xyz_yaw, roll_pitch_var=max(rp_var, 1e-10))
         return FrameSwitchMessage(self.name, switch.frame_index - 1, switch.t, switch.T_old_new, cov)
 
-    def detect(self, t: float, image: np.ndarray, camera: str, K: np.ndarray, T_body_cam: np.ndarray) -> list[Outgoing]:
-        """Marker detection in one rectified image captured at ``t`` (thesis 6.2.1):
-        :meth:`find_markers`, then :meth:`detections_from`."""
-        return self.detections_from(t, self.find_markers(camera, K, image), camera, T_body_cam)
-
     def find_markers(self, camera: str, K: np.ndarray, image: np.ndarray) -> list[MarkerDetection]:
-        """The team's markers in one rectified image of ``camera`` (intrinsics ``K``). Reads
-        none of the agent's state: it may run on another thread than the agent, one call
-        per camera at a time (``sim/run/pipeline.py``)."""
+        """Marker detection (thesis 6.2.1), first step: the team's markers in one rectified
+        image of ``camera`` (intrinsics ``K``); :meth:`detections_from` makes detections of
+        them. Reads none of the agent's state: it may run on another thread than the
+        agent's other methods, one call per camera at a time."""
         detector = self._detectors.get(camera)
         if detector is None:
             detector = self._detectors[camera] = MarkerDetector(K, {m.tag_id: m.size_m for m in self.markers.values() if m.robot != self.name})

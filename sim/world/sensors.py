@@ -494,17 +494,21 @@ class StereoRenderer:
         m.vis.map.znear = self.camera.znear_m / m.stat.extent
         m.vis.map.zfar = SKY_FAR_FACTOR * self.camera.zfar_m / m.stat.extent
         scene = self._free_scenes.get()
-        mujoco.mjv_updateScene(m, data, self._option, None, self._mjv_cams[0], mujoco.mjtCatBit.mjCAT_ALL, scene)
-        scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self._shadows
-        scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
-        if self._tiles is not None and not self._shadows:  # with shadows: the hfield (sim/world/terrain_tiles.py)
-            cam = self._cam_ids[0]
-            chosen = self._tiles.select(data.cam_xpos[cam], data.cam_xmat[cam], float(m.cam_fovy[cam]), self.rig.width / self.rig.height,
-                                        self.rig.height, self.near_m, self.far_m, margin=self.rig.baseline_m)
-            self._tiles.replace_hfield(scene, chosen)
-        left = _eyes(scene)
-        # the right camera sees the same scene: only the camera changes
-        mujoco.mjv_updateCamera(m, data, self._mjv_cams[1], scene)
+        try:
+            mujoco.mjv_updateScene(m, data, self._option, None, self._mjv_cams[0], mujoco.mjtCatBit.mjCAT_ALL, scene)
+            scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self._shadows
+            scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+            if self._tiles is not None and not self._shadows:  # with shadows: the hfield (sim/world/terrain_tiles.py)
+                cam = self._cam_ids[0]
+                chosen = self._tiles.select(data.cam_xpos[cam], data.cam_xmat[cam], float(m.cam_fovy[cam]), self.rig.width / self.rig.height,
+                                            self.rig.height, self.near_m, self.far_m, margin=self.rig.baseline_m)
+                self._tiles.replace_hfield(scene, chosen)
+            left = _eyes(scene)
+            # the right camera sees the same scene: only the camera changes
+            mujoco.mjv_updateCamera(m, data, self._mjv_cams[1], scene)
+        except BaseException:
+            self._free_scenes.put(scene)
+            raise
         return RenderRequest(scene, left, _eyes(scene), self.near_m, self.far_m, with_depth)
 
     def draw(self, request: RenderRequest) -> StereoFrame:
