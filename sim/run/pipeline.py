@@ -5,13 +5,13 @@ Rendering (llvmpipe, ``mjr_render``/``mjr_readPixels``), OpenCV's SGBM and marke
 detection release Python's GIL, so on two cores they overlap the loop's physics, filter
 and mapping. Nothing in the simulation changes: the loop snapshots the scene when a pair
 is captured (:meth:`sim.world.sensors.StereoRenderer.snapshot`); the worker does the
-rest in submission order (one thread: each camera's auto exposure and noise draws see
-the same sequence as inline), and a lane job whose work was handed to the worker gets
+rest in submission order (each camera's tasks on one worker thread: its auto exposure
+and noise draws see the same sequence as inline), and a lane job whose work was handed to the worker gets
 its result when the job finishes in simulated time (:meth:`sim.run.lanes.Lane.submit`),
 where the loop waits for it if the worker is behind. Work whose inputs are fixed when
 its job is submitted starts on the worker then (:meth:`ImagePipeline.job`), so a pair's
-SGBM follows its own drawing rather than every pair of that instant. A run gives the same metrics
-threaded or inline (``tests/test_pipeline.py``).
+SGBM follows its own drawing rather than every pair of that instant. A run gives the
+same metrics threaded or inline (``tests/test_slam_run.py``).
 
 Inline (``workers=0``) everything runs on the loop's thread as it is asked for: the
 mode for ``compute.model: measured``, whose jobs' modelled time is their own wall time.

@@ -198,14 +198,16 @@ IMAGE_WORKERS = int(os.environ.get("MARSYARD_IMAGE_WORKERS", "1"))
 
 
 class Timers:
-    """Wall-clock seconds spent per part of the run."""
+    """Wall-clock seconds spent per part of the run (several image workers may add at once)."""
 
     def __init__(self):
         self.seconds: dict[str, float] = defaultdict(float)
+        self._lock = threading.Lock()
 
     def add(self, part: str, since: float) -> float:
         now = time.perf_counter()
-        self.seconds[part] += now - since
+        with self._lock:
+            self.seconds[part] += now - since
         return now
 
 
