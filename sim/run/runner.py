@@ -271,6 +271,7 @@ class Run:
             [g for g in range(model.ngeom) if model.geom_matid[g] >= 0 and materials[model.geom_matid[g]].startswith(MARKER_MATERIAL_PREFIX)],
             dtype=int,
         )
+        self._marker_roots = model.body_rootid[model.geom_bodyid[self._marker_geoms]]  # the body (robot, lander) each marker is on
         self.network = Network(
             self.env,
             scenario.comms,
@@ -689,8 +690,7 @@ class Run:
                     onboard.capture(frame, now, T_body_cam)
                     if runtime.image_cells is not None:
                         runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), pair)
-                if onboard.detecting:
-                    onboard.detection(now, rig, T_body_cam, searches.get(k))
+                onboard.detection(now, rig, T_body_cam, searches.get(k))
             if for_vo:
                 on_done = lambda depth, t_done, r=runtime, p=pair, g=rig, f=frame, t0=now: self._stereo_done(r, g, images.result(p), depth, f, t0)  # noqa: E731
             else:  # the depth is only scored: whenever the worker has it (Run._score_depths)
@@ -744,7 +744,7 @@ class Run:
         enough to be detected (true poses; conservative: the bounding sphere of the tag with
         its quiet zone against the nominal view, occlusion ignored, the tag's whole width
         against the detector's smallest side ``DEFAULT_MIN_SIDE_PX``)."""
-        geoms = self._marker_geoms[self.world.model.body_rootid[self.world.model.geom_bodyid[self._marker_geoms]] != self._root_body[robot.name]]
+        geoms = self._marker_geoms[self._marker_roots != self._root_body[robot.name]]
         if geoms.size == 0:
             return False
         T = self._camera_pose(rig.left_camera)

@@ -3,12 +3,12 @@ rovers on the same terrain, and which part of the run grows fastest with N::
 
     python -m sim.tools.team_bench --sizes 1 2 4 8 --duration 30 --out results/bench/team
 
-Each team is a generated scenario (written beside its results as ``team_<N>.yaml``): a
-30 m lunar patch with the lander at its centre, the rovers spaced on a 10 m circle
+The largest team is a generated scenario (written beside the results as ``team_<N>.yaml``):
+a 30 m lunar patch with the lander at its centre, the rovers spaced on a 10 m circle
 around it, each driving 4 m towards the lander, 2 m along the circle and back out, with
-the full estimation stack and the default network. Each runs in its own process
-(``python -m sim.cli run``), so memory and timings are its own. Writes ``team.json`` and
-``team.md``.
+the full estimation stack and the default network; the smaller teams keep its first
+rovers (batch variants, ``team_batch.yaml``: one run at a time, each in its own
+process). Writes ``team.json`` and ``team.md`` beside the batch's runs.
 """
 
 from __future__ import annotations
@@ -17,9 +17,10 @@ import argparse
 import json
 import math
 import platform
-import subprocess
-import sys
 from pathlib import Path
+
+from sim.batch.execute import execute, plan
+from sim.batch.spec import load_batch
 
 RADIUS_M = 10.0
 IN_M, ALONG_M = 4.0, 2.0
@@ -60,17 +61,29 @@ def team_scenario(n: int, duration_s: float, seed: int) -> dict:
     }
 
 
-def run_team(n: int, duration_s: float, seed: int, out: Path) -> dict:
-    """Run the team of ``n`` in its own process; its size, speed, memory and network load."""
+def run_teams(sizes: list[int], duration_s: float, seed: int, out: Path) -> list[dict]:
+    """The teams as one batch (``sim.batch``: each run in a fresh process, one at a time, so
+    memory and timings are its own): the largest team's scenario, each smaller team keeping
+    its first rovers. Each team's size, speed, memory and network load."""
     out.mkdir(parents=True, exist_ok=True)
-    path = out / f"team_{n}.yaml"
-    path.write_text(json.dumps(team_scenario(n, duration_s, seed), indent=2) + "\n")  # JSON is YAML
-    folder = out / f"team_{n}"
-    cmd = [sys.executable, "-m", "sim.cli", "run", str(path), "--out", str(folder), "--no-progress"]
-    done = subprocess.run(cmd, capture_output=True, text=True)
-    if done.returncode != 0 or not (folder / "metrics.json").is_file():
-        raise RuntimeError(f"team of {n} failed ({' '.join(cmd)}):\n{done.stderr[-2000:]}")
-    m = json.loads((folder / "metrics.json").read_text())
+    scenario = out / f"team_{sizes[-1]}.yaml"
+    scenario.write_text(json.dumps(team_scenario(sizes[-1], duration_s, seed), indent=2) + "\n")  # JSON is YAML
+    batch_file = out / "team_batch.yaml"
+    variants = [{"label": f"team_{n}", "robots": [f"lru{k + 1}" for k in range(n)]} for n in sizes]
+    batch_file.write_text(json.dumps({"name": "team_bench", "scenario": scenario.name, "seeds": [seed], "variants": variants}, indent=2) + "\n")
+    index, todo = plan(load_batch(batch_file), out)
+    execute(index, todo, workers=1, on_start=lambda spec: print(f"{spec.variant}: running {duration_s:.0f} s ...", flush=True))
+    rows = []
+    for n, spec in zip(sizes, todo):
+        path = out / spec.folder / "metrics.json"
+        if not path.is_file():
+            raise RuntimeError(f"team of {n} failed: {index.runs[spec.id]}")
+        rows.append(team_row(n, json.loads(path.read_text())))
+    return rows
+
+
+def team_row(n: int, m: dict) -> dict:
+    """A team run's size, speed, memory and network load from its ``metrics.json``."""
     rt, totals = m["runtime"], m["comms"]["totals"]
     sim_s = rt["sim_s"]
     per_sim_s = {f"loop: {k}": v / sim_s for k, v in rt["parts_s"].items() if k != "setup"}
@@ -153,13 +166,10 @@ def main() -> None:
         parser.error(f"--sizes must be positive team sizes, got {args.sizes}")
     if not args.duration > 0:
         parser.error(f"--duration must be positive, got {args.duration}")
-    rows = []
-    for n in sizes:
-        print(f"team of {n}: running {args.duration:.0f} s ...", flush=True)
-        row = run_team(n, args.duration, args.seed, args.out)
-        print(f"team of {n}: real-time factor {row['real_time_factor']:.2f}, peak {row['peak_rss_mb']:.0f} MB, "
+    rows = run_teams(sizes, args.duration, args.seed, args.out)
+    for row in rows:
+        print(f"team of {row['robots']}: real-time factor {row['real_time_factor']:.2f}, peak {row['peak_rss_mb']:.0f} MB, "
               f"network {row['network_offered_Bps'] / 1e3:.1f} kB/s", flush=True)
-        rows.append(row)
     print(write_report(rows, args.out))
 
 
