@@ -444,6 +444,25 @@ class ExplorationConfig(StrictModel):
     min_goal_distance_m: NonNegFloat = slam_field(
         SlamParam(ExplorationParams, "min_goal_distance_m"), description="no goal nearer than this to the robot"
     )
+    loop_closing_weight: NonNegFloat = slam_field(
+        SlamParam(ExplorationParams, "loop_closing_weight"),
+        description="active loop closing: a revisit's utility is this (cells per nat) x its expected information"
+        " x exp(-distance_weight x distance); 0: off (the thesis)",
+    )
+    loop_closing_match_sigma_m: PositiveFloat = slam_field(
+        SlamParam(ExplorationParams, "loop_closing_match_sigma_m"),
+        description="active loop closing: the position sigma a match would leave at a revisited place",
+    )
+    observe_peers: bool = slam_field(
+        SlamParam(ExplorationParams, "observe_peers"),
+        description="active mutual observation: point the head at a peer believed within observe_range_m",
+    )
+    observe_range_m: PositiveFloat = slam_field(
+        SlamParam(ExplorationParams, "observe_range_m"), description="active mutual observation: look for peers this near"
+    )
+    observe_interval_s: NonNegFloat = slam_field(
+        SlamParam(ExplorationParams, "observe_interval_s"), description="active mutual observation: look for a peer not detected for this long"
+    )
     initial_scan: bool = Field(True, description="scan where it stands before choosing its first goal")
     scan_at_goal: bool = Field(True, description="scan 360 deg at every goal (route.scan_duration_s)")
 

@@ -542,6 +542,26 @@ class Agent:
         B = self.pose_in_map(robot, pose.frame_index, pose.T_frame_body)
         return None if B is None else (pose.t, B)
 
+    def peer_odometry_pose(self, robot: str) -> tuple[float, np.ndarray] | None:
+        """``robot``'s latest periodic pose estimate in its first local frame (its odometry
+        frame: where its map frame sits until its graph moves it), its frame switches
+        chained, with the estimate's time; None without an estimate or with a switch of the
+        chain missing. Needs no graph connection (slam/navigation/observation.py)."""
+        pose = self.peer_pose.get(robot)
+        if pose is None:
+            return None
+        chain = self.peer_switches[robot]
+        T = np.eye(4)
+        for i in range(pose.frame_index):
+            if i not in chain:
+                return None
+            T = T @ chain[i]
+        return pose.t, T @ pose.T_frame_body
+
+    def last_detection_t(self, robot: str) -> float:
+        """When this robot last detected ``robot``'s markers (-inf: never)."""
+        return self._last_detection.get(robot, -math.inf)
+
     def placed_submaps(self) -> list[tuple[Submap, np.ndarray]]:
         """Every finished submap this robot holds, its own and its peers', with its origin
         in this robot's map from the graph (thesis 5.2.2); peers' submaps only once the
@@ -552,6 +572,34 @@ class Agent:
             S = self._origin(robot, submap.frame_index, self.peer_switches[robot])
             if S is not None:
                 out.append((submap, S))
+        return out
+
+    def revisit_places(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Places to return to for a loop closure (slam/navigation/exploration.py, active loop
+        closing): the origin ``S`` (in this robot's map) of each submap the matcher prepared
+        as suitable (thesis 6.1.1), own and peers', with the 3x3 covariance (map axes) of its
+        position relative to this robot's latest submap origin, from the graph's joint
+        marginals (:meth:`MultiRobotGraph.relative_covariances`). Empty without a matcher."""
+        latest = self.graph.latest_submap(self.name)
+        if self.matcher is None or latest is None:
+            return []
+        me = (self.name, latest)
+        pairs = {}
+        for key in sorted(self.matcher.queue.prepared):
+            node = (key[0], self.matcher.frames[key])
+            S = None if node == me else self.graph.submap_origin(*node)
+            if S is not None:
+                pairs[(me, node)] = S
+        try:
+            covs = self.graph.relative_covariances(list(pairs))
+        except (RuntimeError, ValueError):  # gtsam: no marginals of this estimate
+            self.stats.marginal_failures += 1
+            return []
+        out = []
+        for pair, S in pairs.items():
+            if pair in covs:
+                R = S[:3, :3]
+                out.append((S, R @ covs[pair][3:, 3:] @ R.T))
         return out
 
     def active_submap(self) -> tuple[Submap, np.ndarray] | None:

@@ -121,7 +121,8 @@ class ClosureInput:
 class ExplorerInput:
     """An exploring robot (thesis 9.3): its own submaps (finished, and the active one) with
     the times of its local frames, whose true poses are their origins' truth; each answer of
-    its explorer with its time; its route's goals."""
+    its explorer with its time; its route's goals; when its head turned to a peer (active
+    mutual observation)."""
 
     start_t: float | None
     switch_times: dict[int, float]
@@ -129,6 +130,7 @@ class ExplorerInput:
     goals: list[tuple[float, Goal]]
     waypoints: list  # sim.robots.route.WaypointRecord, the scenario's waypoints first
     scripted: int  # how many of them the scenario gave
+    observations: list[tuple[float, str]]
 
 
 def explorer_inputs(run: Run) -> dict[str, ExplorerInput]:
@@ -147,6 +149,7 @@ def explorer_inputs(run: Run) -> dict[str, ExplorerInput]:
             goals=list(onboard.goals),
             waypoints=list(runtime.robot.waypoints),
             scripted=len(runtime.robot.cfg.route.waypoints),
+            observations=list(onboard.observations),
         )
     return out
 

@@ -35,7 +35,7 @@ import mujoco
 import numpy as np
 from dm_control import mjcf
 
-from sim.robots.path_following import GoalSource, OwnEstimate, PathFollower
+from sim.robots.path_following import GazeSource, GoalSource, OwnEstimate, PathFollower
 from sim.robots.route import RouteTracker, WaypointRecord
 from sim.world.camera_rig import StereoRig
 from sim.world.markers import MarkerSpec, add_marker
@@ -176,6 +176,8 @@ class Robot(ABC):
         self.follower: PathFollower | None = None
         #: Where an exploring robot's next goals come from once its route is done (set by the run; ``explores``).
         self.goal_source: GoalSource | None = None
+        #: Where a robot with a :attr:`pan_tilt_head` points it when it may (set by the run; active mutual observation).
+        self.gaze_source: GazeSource | None = None
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._attached = False

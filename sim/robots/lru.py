@@ -81,6 +81,10 @@ MARKER_AZIMUTHS_DEG = (0.0, 120.0, 240.0)
 PAN_SLEW_RPS = 1.0  # head pan speed when moving to/from a scan
 HEAD_SWEEP_DEG = 0.0  # default pan amplitude while driving: none
 HEAD_SWEEP_PERIOD_S = 10.0  # default period of the sweep
+#: While driving, the head turns to a peer it looks for (``gaze_source``) only this far from ahead, so that
+#: the 50 deg field of view still reaches within 15 deg of the way ahead; standing, it turns any way.
+GAZE_MAX_PAN_DRIVING_RAD = math.radians(40)
+GAZE_SLEWING_RAD = math.radians(2)  # the head still turns to its gaze: that sways the body (no rest)
 TILT_GUARD_RAD = math.radians(35)  # beyond this roll/pitch the rover backs off ...
 TILT_GUARD_RELEASE_RAD = math.radians(25)  # ... until it is below this again
 BACKOFF_SPEED = 0.15  # m/s
@@ -259,10 +263,14 @@ class LRU(Robot):
 
     @property
     def commands_motion(self) -> bool:
-        """Wheels driven, or the pan-tilt head scanning: the swinging mast sways the body on
-        its rocker by 1-2 cm/s at the IMU (measured on etna_two_rovers.yaml), so that is
-        no rest either."""
-        return self.phase in ("drive", "scan") and not self.tipped_over
+        """Wheels driven, or the pan-tilt head scanning, or turning to its gaze while the rover
+        stands: the swinging mast sways the body on its rocker by 1-2 cm/s at the IMU
+        (measured on etna_two_rovers.yaml), so that is no rest either."""
+        if self.tipped_over:
+            return False
+        if self.phase in ("drive", "scan"):
+            return True
+        return self.gaze_source is not None and abs(self.head_angles()[0] - self.pan_ref) > GAZE_SLEWING_RAD
 
     def _begin_next(self, t: float, xy: np.ndarray) -> None:
         source = self.goal_source
@@ -318,7 +326,8 @@ class LRU(Robot):
                     goal = route.target_xy if self.follower is None else self.follower.steer_point(t, estimate, T_odom_body, route.target_xy)
                     v, w = drive_command(xy, yaw, goal, route.cfg.speed_mps, DriveGains())
                     v, w = self._tilt_guard(t, tilt, v, w)
-                    self.pan_ref = self._sweep_pan(t)
+                    gaze = self._gaze_pan(t, xy, yaw)
+                    self.pan_ref = self._sweep_pan(t) if gaze is None or abs(gaze) > GAZE_MAX_PAN_DRIVING_RAD else gaze
         if self.phase == "scan":
             self.pan_ref = self._scan_pan(t - self._scan_t0)
             scan_tilt = self.cfg.route.scan_tilt_deg
@@ -327,7 +336,18 @@ class LRU(Robot):
                 self.pan_ref = 0.0
                 self.tilt_ref = math.radians(DEFAULT_TILT_DEG)
                 self._begin_next(t, xy)
+        if self.phase in ("wait", "done"):
+            gaze = self._gaze_pan(t, xy, yaw)
+            if gaze is not None:
+                self.pan_ref = gaze
         self._apply(v, w)
+
+    def _gaze_pan(self, t: float, xy: np.ndarray, yaw: float) -> float | None:
+        """Pan that points the head at :attr:`gaze_source`'s point, from the pose the guidance believes; None if none."""
+        target = None if self.gaze_source is None else self.gaze_source.look_at(t)
+        if target is None:
+            return None
+        return wrap_angle(math.atan2(target[1] - xy[1], target[0] - xy[0]) - yaw)
 
     def _tilt_guard(self, t: float, tilt: float, v: float, w: float) -> tuple[float, float]:
         """Never drive on into a slope that would tip the rover: beyond ``TILT_GUARD_RAD``

@@ -60,6 +60,14 @@ class GoalSource(Protocol):
         as "withdrawn" and the robot asks for another)."""
 
 
+class GazeSource(Protocol):
+    """Where a robot with a pan-tilt head should look (sim/run/onboard.py; active mutual
+    observation, slam/navigation/observation.py)."""
+
+    def look_at(self, t: float) -> np.ndarray | None:
+        """A point (mission frame, as believed) to point the cameras at now, or None."""
+
+
 class PathFollower:
     """Plans towards a goal in the mission frame and hands the controller the point to steer at."""
 

@@ -46,8 +46,9 @@ from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
 from slam.markers import MarkerDetection
 from slam.matcher import MatcherParams
-from slam.navigation.exploration import ExplorationParams, Goal
+from slam.navigation.exploration import ExplorationParams, Goal, RevisitPlace
 from slam.navigation.explorer import Explorer
+from slam.navigation.observation import peer_to_observe
 from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.stereo import StereoCalibration, depth_error
@@ -60,6 +61,15 @@ TRUTH_MATCH_S = 1e-6  # s: a truth sample is at the filter's time within this
 #: 0.5 s of samples has a noise of a few thousandths of a degree; the rest is margin for
 #: a robot that is not perfectly still (motors idling, a settling suspension).
 RESTING_TILT_STD = math.radians(0.2)
+
+
+GAZE_PERIOD_S = 0.5  # the peer to look at is chosen again this often (active mutual observation)
+PEER_ESTIMATE_MAX_AGE_S = 5.0  # a peer's periodic estimate older than this places it no more (1.5 m at 0.3 m/s)
+
+
+def _deployment(start) -> np.ndarray:
+    """``T_world_map``: a robot's map frame where it was deployed (the scenario's start; height plays no part)."""
+    return se3(rot_z(math.radians(start.yaw_deg)), [start.xy[0], start.xy[1], 0.0])
 
 
 def filter_params(spec: ImuSpec, gravity: float, cfg: SlamConfig) -> FilterParams:
@@ -200,8 +210,8 @@ class OnboardStack:
         self.on_mapped = None  # optional callback(frame_id, depth, classification), e.g. the evaluation
         # its map frame is the gravity-aligned frame of its pose at the filter's start, which it believes
         # to be the scenario's start (where it was deployed; height plays no part)
-        start = robot.cfg.start
-        self._T_world_map = se3(rot_z(math.radians(start.yaw_deg)), [start.xy[0], start.xy[1], 0.0])
+        self._deployments = {r.name: _deployment(r.start) for r in scenario.robots}  # the mission plan, known to all
+        self._T_world_map = self._deployments[robot.name]
         self._map_odom: tuple[tuple[int, int], np.ndarray] | None = None
         self.explorer: Explorer | None = None
         self.goals: list[tuple[float, Goal]] = []  # every exploration answer, with its time
@@ -424,6 +434,10 @@ class OnboardStack:
         self._known_goals: set[tuple[str, float]] = set()  # the peers' goals it knew when it chose its latest
         self._announced_t = -math.inf
         self.robot.goal_source = self
+        self._gaze: tuple[float, np.ndarray | None] | None = None
+        self.observations: list[tuple[float, str]] = []  # (t, peer) whenever the head turns to a peer
+        if self.explorer.params.observe_peers and self.robot.pan_tilt_head:
+            self.robot.gaze_source = self
 
     @property
     def finished(self) -> bool:
@@ -460,6 +474,39 @@ class OnboardStack:
                 return True
         return False
 
+    def look_at(self, t: float) -> np.ndarray | None:
+        """The peer to point the head at now (slam/navigation/observation.py; mission frame,
+        as believed), or None; chosen again every ``GAZE_PERIOD_S``."""
+        if self._gaze is not None and t < self._gaze[0] + GAZE_PERIOD_S:
+            return self._gaze[1]
+        T = self._believed_pose()
+        found = None
+        if T is not None:
+            peers = {p: xy for p in self.agent.peers if (xy := self._peer_position(p, t)) is not None}
+            last = {p: self.agent.last_detection_t(p) for p in peers}
+            params = self.explorer.params
+            found = peer_to_observe(T[:2, 3], peers, last, t, params.observe_range_m, params.observe_interval_s)
+        if found is not None and (self._gaze is None or self._gaze[1] is None):
+            self.observations.append((t, found[0]))
+        self._gaze = (t, None if found is None else found[1])
+        return self._gaze[1]
+
+    def _peer_position(self, peer: str, t: float) -> np.ndarray | None:
+        """Where this robot believes ``peer`` is (mission frame): its latest periodic estimate
+        on this robot's graph, or, until the graph connects them, in the peer's odometry frame
+        on its deployment; None without an estimate of the last ``PEER_ESTIMATE_MAX_AGE_S``."""
+        belief = self.agent.belief(peer)
+        if belief is not None:
+            t_estimate, T = belief
+            T_world = self._T_world_map @ T
+        else:
+            odometry = self.agent.peer_odometry_pose(peer)
+            if odometry is None:
+                return None
+            t_estimate, T = odometry
+            T_world = self._deployments[peer] @ T
+        return T_world[:2, 3] if t - t_estimate <= PEER_ESTIMATE_MAX_AGE_S else None
+
     def _believed_pose(self) -> np.ndarray | None:
         """``T_world_body`` as the robot believes (its online SLAM pose in the mission frame)."""
         T_odom_body = self.odometry_pose()
@@ -476,10 +523,31 @@ class OnboardStack:
         first = len(self.robot.cfg.route.waypoints)
         visited = [np.array(r.xy) for r in self.robot.route.records[first:]]
         self._known_goals = {(g.robot, g.t) for g in self.agent.peer_goals.values()}
-        goal = self.explorer.next_goal(explored, obstacles, T[:2, 3], self.agent.current_peer_goals(), visited)
+        revisits = self._revisit_places() if self.explorer.params.loop_closing_weight > 0 else []
+        revisited = [g.xy for _, g in self.goals if g.reason == "revisit"]
+        goal = self.explorer.next_goal(explored, obstacles, T[:2, 3], self.agent.current_peer_goals(), visited, revisits, revisited)
         xy = T[:2, 3] if goal.xy is None else goal.xy
         self._announced_t = self.lane.env.now
         return goal, self.agent.announce_goal(self._announced_t, xy, finished=goal.finished)
+
+    def _revisit_places(self) -> list[RevisitPlace]:
+        """The matcher's suitable submaps as places to return to (:meth:`Agent.revisit_places`),
+        in the mission frame; each one's covariance relative to the robot now adds the
+        filter's position covariance in its current frame to the graph's relative one, widened
+        by the matcher's ``sigma_scale`` as its pairing widens it (eq. 6.1-6.4), so that the
+        explorer and the matcher judge a place's uncertainty alike."""
+        if self.agent.matcher is None:
+            return []
+        est = self.estimator
+        R_world_body = (self.world_from_odometry() @ est.T_first_current @ est.filter.pose())[:3, :3]
+        filter_cov = R_world_body @ est.filter.pose_covariance()[3:, 3:] @ R_world_body.T
+        R_world_map = self._T_world_map[:3, :3]
+        scale = self.agent.matcher.params.sigma_scale
+        out = []
+        for S, cov in self.agent.revisit_places():
+            xy = (self._T_world_map @ S)[:2, 3]
+            out.append(RevisitPlace(xy, scale**2 * (R_world_map @ cov @ R_world_map.T + filter_cov)[:2, :2]))
+        return out
 
     def _goal_chosen(self, result: tuple[Goal | None, list[Outgoing]], t: float) -> None:
         self._goal_queued = False

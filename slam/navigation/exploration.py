@@ -28,6 +28,20 @@ sensor range". The thesis gives no more detail; this is the textbook form of eac
   not chosen again (nor any cell within ``3 * cell_m`` of it): what is left unexplored
   there could not be seen from it. Nor are cells next to mapped obstacles.
 
+**Active loop closing** (``loop_closing_weight`` > 0; beyond the thesis, its future work in
+9.3 and 10: a goal's value trades new area against revisiting mapped places for
+re-localisation). Exploration that only seeks new ground rarely returns, so submap matching
+(thesis 6.1) has little to close (Stachniss et al. 2004 closed loops actively for this
+reason). Each place the robot could return to (:class:`RevisitPlace`: the origin of a
+finished submap the matcher found suitable, own or a peer's) carries the covariance of its
+position relative to the robot now; a match there would shrink it to about the match's own
+(``loop_closing_match_sigma_m``). The expected information of the revisit is that entropy
+drop of the 2D Gaussian, ``I = 0.5 ln(det Σ / σ_m^4)`` (nats), and its utility
+``loop_closing_weight * I * exp(-distance_weight * d)``, with the weight in cells per nat
+(one currency with the frontiers' gain). The robot goes where the utility is highest,
+frontier or revisit; a place within ``3 * cell_m`` of an earlier revisit goal is not chosen
+again. With the weight 0 (the default) the exploration is the thesis's.
+
 A robot that has seen nothing of the region yet (it starts outside it) first drives to its
 nearest cell. Exploration ends (:attr:`Goal.finished`) when the robot believes
 ``coverage_target`` of the region is explored, or when no frontier with a gain of at least
@@ -36,6 +50,7 @@ nearest cell. Exploration ends (:attr:`Goal.finished`) when the robot believes
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,12 +75,21 @@ class ExplorationParams:
     coverage_target: float = 0.95
     min_gain_cells: int = 4
     min_goal_distance_m: float = 1.5
+    loop_closing_weight: float = 0.0
+    loop_closing_match_sigma_m: float = 0.05
+    observe_peers: bool = False  # active mutual observation (slam/navigation/observation.py)
+    observe_range_m: float = 6.0  # about the farthest the LRU detects a peer's 0.15 m markers (8 px at f = 338 px)
+    observe_interval_s: float = 30.0
 
     def __post_init__(self):
         if not (self.cell_m > 0 and self.sensor_range_m > 0):
             raise ExplorationException("cell_m and sensor_range_m must be positive")
-        if self.goal_separation_m < 0 or self.distance_weight < 0 or self.min_goal_distance_m < 0:
-            raise ExplorationException("goal_separation_m, distance_weight and min_goal_distance_m must not be negative")
+        if min(self.goal_separation_m, self.distance_weight, self.min_goal_distance_m, self.loop_closing_weight) < 0:
+            raise ExplorationException("goal_separation_m, distance_weight, min_goal_distance_m and loop_closing_weight must not be negative")
+        if not (self.observe_range_m > 0 and self.observe_interval_s >= 0):
+            raise ExplorationException("observe_range_m must be positive and observe_interval_s not negative")
+        if not self.loop_closing_match_sigma_m > 0:
+            raise ExplorationException(f"loop_closing_match_sigma_m must be positive, got {self.loop_closing_match_sigma_m}")
         if not 0 < self.coverage_target <= 1:
             raise ExplorationException(f"coverage_target must be in (0, 1], got {self.coverage_target}")
 
@@ -110,9 +134,24 @@ class RegionGrid:
 
 
 @dataclass(frozen=True)
+class RevisitPlace:
+    """A mapped place to return to for a loop closure: ``xy`` (mission frame, as believed) and
+    ``cov_xy``, the 2x2 covariance of its position relative to the robot now."""
+
+    xy: np.ndarray
+    cov_xy: np.ndarray
+
+    def information(self, match_sigma_m: float) -> float:
+        """Entropy drop (nats) if a match pinned the place to ``match_sigma_m``: ``0.5 ln(det Σ / σ^4)``, at least 0."""
+        det = float(np.linalg.det(np.asarray(self.cov_xy, float)))
+        return 0.0 if det <= 0 else max(0.0, 0.5 * math.log(det / match_sigma_m**4))
+
+
+@dataclass(frozen=True)
 class Goal:
     """The explorer's answer: a goal ``xy`` (mission frame) with its ``gain`` (cells;
-    ``reason`` "approach" for the way into a region not seen yet), or ``finished``
+    ``reason`` "approach" for the way into a region not seen yet, "revisit" for a place
+    returned to for a loop closure, with its expected ``information`` in nats), or ``finished``
     (``reason``: "coverage" or "no frontier"); ``coverage``: the region's explored fraction
     as the robot believes it."""
 
@@ -121,6 +160,7 @@ class Goal:
     gain: int = 0
     finished: bool = False
     reason: str = ""
+    information: float = 0.0
 
 
 def frontiers(explored: np.ndarray, inside: np.ndarray, blocked: np.ndarray) -> np.ndarray:
@@ -153,9 +193,13 @@ def choose_goal(
     params: ExplorationParams,
     peer_goals: list[np.ndarray] = (),
     visited: list[np.ndarray] = (),
+    revisits: list[RevisitPlace] = (),
+    revisited: list[np.ndarray] = (),
 ) -> Goal:
     """The next goal (module docstring). ``explored``, ``obstacles``: boolean grids on
-    ``grid``; ``peer_goals``, ``visited`` (the robot's earlier goals): points in the mission frame."""
+    ``grid``; ``peer_goals``, ``visited`` (the robot's earlier goals), ``revisited`` (its
+    earlier revisit goals): points in the mission frame; ``revisits``: places to return to
+    (used when ``params.loop_closing_weight`` > 0)."""
     coverage = grid.coverage(explored)
     if coverage >= params.coverage_target:
         return Goal(None, coverage, finished=True, reason="coverage")
@@ -185,4 +229,27 @@ def choose_goal(
             utility = utility * (nearest / params.goal_separation_m) ** 2
     score = np.where(candidate, utility, -np.inf)
     i, j = np.unravel_index(int(np.argmax(score)), score.shape)
+    revisit = _best_revisit(revisits, revisited, robot, params)
+    if revisit is not None and revisit[0] > score[i, j]:
+        _, place, info = revisit
+        return Goal(np.asarray(place.xy, float)[:2].copy(), coverage, reason="revisit", information=info)
     return Goal(centers[i, j].copy(), coverage, int(gain[i, j]))
+
+
+def _best_revisit(
+    revisits: list[RevisitPlace], revisited: list[np.ndarray], robot: np.ndarray, params: ExplorationParams
+) -> tuple[float, RevisitPlace, float] | None:
+    """``(utility, place, information)`` of the best place to return to (module docstring), or None."""
+    if params.loop_closing_weight <= 0:
+        return None
+    best = None
+    for place in revisits:
+        xy = np.asarray(place.xy, float)[:2]
+        d = float(np.linalg.norm(xy - robot))
+        if d < params.min_goal_distance_m or any(np.linalg.norm(xy - np.asarray(r, float)[:2]) < 3 * params.cell_m for r in revisited):
+            continue
+        info = place.information(params.loop_closing_match_sigma_m)
+        utility = params.loop_closing_weight * info * math.exp(-params.distance_weight * d)
+        if utility > 0 and (best is None or utility > best[0]):
+            best = (utility, place, info)
+    return best

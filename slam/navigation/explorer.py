@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from slam.lie import apply_planar
-from slam.navigation.exploration import ExplorationParams, Goal, RegionGrid, choose_goal
+from slam.navigation.exploration import ExplorationParams, Goal, RegionGrid, RevisitPlace, choose_goal
 from slam.submap import Submap
 
 
@@ -81,6 +81,8 @@ class Explorer:
         robot_xy,
         peer_goals: list[np.ndarray] = (),
         visited: list[np.ndarray] = (),
+        revisits: list[RevisitPlace] = (),
+        revisited: list[np.ndarray] = (),
     ) -> Goal:
         """The next goal from the grids (:func:`slam.navigation.exploration.choose_goal`)."""
-        return choose_goal(self.grid, explored, obstacles, robot_xy, self.params, peer_goals, visited)
+        return choose_goal(self.grid, explored, obstacles, robot_xy, self.params, peer_goals, visited, revisits, revisited)
