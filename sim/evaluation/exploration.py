@@ -14,7 +14,7 @@ mission frame as they believed it) is reported beside it.
 true path lengths together) and per robot its own ``coverage`` (and over time), its
 ``believed_coverage`` (at its explorer's last answer, ``believed_t``), goals chosen,
 reached, failed and withdrawn (given up for a peer's), revisit goals (active loop
-closing), how often its head turned to a peer (active mutual observation), and why and
+closing) with the information each was expected to bring, how often its head turned to a peer (active mutual observation), and why and
 when it stopped exploring.
 ``exploration.png`` draws coverage over time and the explored cells by robot with the
 true paths and goals.
@@ -77,6 +77,7 @@ def exploration_section(region, cell_m: float, robots: dict[str, ExplorerInput],
             "goals_failed": sum(w.status == "failed" and w.reason != "withdrawn" for w in goals),
             "goals_withdrawn": sum(w.reason == "withdrawn" for w in goals),  # given up for a peer's (sim/run/onboard.py)
             "revisits": sum(g.reason == "revisit" for _, g in robot.goals),  # active loop closing
+            "revisit_information_nats": [round(g.information, 3) for _, g in robot.goals if g.reason == "revisit"],
             "observations": len(robot.observations),  # times its head turned to a peer (active mutual observation)
             "finished": None if last is None or not last[1].finished else last[1].reason,
             "finished_t": None if last is None or not last[1].finished else round(last[0], 3),

@@ -75,6 +75,7 @@ class SlamInput:
     believed online (``sim.run.onboard.SlamLog``; thesis ch. 8: never re-optimised)."""
 
     start_t: float | None  # the filter's first estimate: the time of the map frame's truth
+    switch_times: dict[int, float]  # local frame index -> time of the switch into it (submap origins' truth)
     estimate: Trajectory  # its own pose in its map frame (eq. 4.6)
     final_estimate: Trajectory  # the same times by the final graph: its logged filter poses on the final submap origins
     beliefs: dict[str, Rows]  # peer -> rows [t, t of the estimate, the 16 entries of the pose in this map]
@@ -211,6 +212,7 @@ def slam_input(onboard: OnboardStack) -> SlamInput | None:
     agent, slog = onboard.agent, onboard.slam_log
     return SlamInput(
         start_t=_start_t(onboard),
+        switch_times=_switch_times(onboard),
         estimate=Trajectory.from_lists(slog.t, slog.pose),
         final_estimate=_final_estimate(onboard),
         beliefs=slog.beliefs,

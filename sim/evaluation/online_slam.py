@@ -29,7 +29,7 @@ from sim.evaluation import trajectory
 from sim.evaluation.inputs import SlamInput, TeamTruth
 from sim.evaluation.statistics import StatisticsType, statistics
 from sim.evaluation.trajectory import ErrorOverTime
-from slam.lie import rotation_angle, wrap_angle, yaw_of
+from slam.lie import rotation_angle, se3_inv, wrap_angle, yaw_of
 
 if TYPE_CHECKING:
     from slam.agent import DetectionRecord
@@ -77,6 +77,7 @@ def slam_section(out: Path, name: str, slam: SlamInput | None, truth: TeamTruth,
     edges = [(kind, T_world_start @ _h(a), T_world_start @ _h(b)) for kind, a, b in slam.graph.edges()]
     if recorder is not None:
         _record(recorder, name, slam, T_world_start, edges)
+    section["origin_consistency"] = _origin_consistency(name, slam, truth)
     section["beliefs"] = _beliefs(slam.beliefs, truth, T_world_start)
     section["graph"] = _graph_metrics(slam)
     section["detections"] = _detection_metrics(name, slam, truth)
@@ -146,6 +147,45 @@ def _beliefs(beliefs: dict[str, Any], truth: TeamTruth, T_world_map: np.ndarray)
             "estimate_age_s": statistics(age, BELIEF_STATISTICS),
         }
     return out
+
+
+def _origin_consistency(name: str, slam: SlamInput, truth: TeamTruth) -> dict[str, Any]:
+    """How well the final graph knows its own uncertainty: each of the robot's submap
+    origins ``s_k`` after the first, relative to the first (``s_0^-1 s_k``, whose covariance
+    is what the matcher's pairing, eq. 6.1-6.4, and an explorer's revisits judge by), against
+    the truth. ``position_nees``: the NEES of its position (3 dof, the translation part of the
+    right perturbation, with the graph's joint-marginal covariance,
+    :meth:`slam.graph.MultiRobotGraph.relative_covariances`); ``last``: the latest origin's
+    predicted sigma (largest axis) and true position error. A graph whose covariances fit
+    its errors has a mean near 3."""
+    graph = slam.graph
+    origins = trajectory.frame_origins_truth(slam.start_t, slam.switch_times, truth.of(name))
+    S0 = graph.submap_origin(name, 0)
+    indices = sorted(k for k in origins if k > 0 and graph.submap_origin(name, k) is not None)
+    if S0 is None or 0 not in origins or not indices:
+        return {"status": "fewer than two submap origins"}
+    try:
+        covs = graph.relative_covariances([((name, 0), (name, k)) for k in indices])
+    except (RuntimeError, ValueError) as exc:  # gtsam: no marginals of this estimate
+        return {"status": f"not evaluated: {exc}"}
+    errors, cov = [], []
+    for k in indices:
+        if ((name, 0), (name, k)) not in covs:
+            continue
+        est = se3_inv(S0) @ graph.submap_origin(name, k)
+        true = se3_inv(origins[0]) @ origins[k]
+        errors.append(est[:3, :3].T @ (true[:3, 3] - est[:3, 3]))
+        cov.append(covs[((name, 0), (name, k))][3:, 3:])
+    if not errors:
+        return {"status": "no covariances"}
+    errors, cov = np.array(errors), np.array(cov)
+    report, _ = trajectory.nees_report(errors, np.zeros_like(errors), cov, angle_dims=0)
+    return {
+        "status": "ok",
+        "origins": len(errors),
+        "position_nees": report,
+        "last": {"sigma_m": float(np.sqrt(np.linalg.eigvalsh(cov[-1])[-1])), "error_m": float(np.linalg.norm(errors[-1]))},
+    }
 
 
 def _graph_metrics(slam: SlamInput) -> dict[str, Any]:
