@@ -866,3 +866,34 @@ def test_gnc_keeps_an_only_link_and_never_raises(monkeypatch):
     stats = graph.update(t=9.5)
     assert stats.factors_added == 2 + 4 and graph.factor_counts()["d"] == 3  # two d and their four v
     assert graph.gnc_runs[-1].error.startswith("Indeterminant linear system") and graph.gnc_runs[-1].rejected == ()
+
+
+# ---------------------------------------------------------------------------- 9. the graph's own uncertainty against truth
+
+
+def test_origin_consistency_finds_covariances_that_fit_and_ones_that_are_too_small():
+    """sim.evaluation.online_slam.origin_consistency on one robot's chain: with switch covariances
+    that match the noise drawn, the position NEES of its origins relative to the first averages
+    about 3 (dof) over seeds (2.4 measured); declared ten times too small in sigma, a hundred times more."""
+    from sim.evaluation.online_slam import origin_consistency
+
+    def mean_nees(seed: int, declared_scale: float) -> tuple[float, dict]:
+        rng = np.random.default_rng(seed)
+        r = drive("lru1", rng, 0.0, 0.0, 0.0, steps=48, yaw_rate=0.1)
+        graph = MultiRobotGraph("lru1", LOCAL)
+        for j, t in enumerate(r.switch_t):
+            T = se3_inv(r.S[j]) @ r.S[j + 1]
+            cov = switch_pose3_covariance(T, switch_covariance(r.per_submap))
+            graph.add_frame_switch("lru1", j, t, noisy(T, cov, rng), cov * declared_scale**2)
+        graph.update()
+        report = origin_consistency(graph, "lru1", dict(enumerate(r.S)))
+        assert report["status"] == "ok" and report["origins"] == len(r.S) - 1
+        return report["position_nees"]["mean"], report
+
+    fitting = [mean_nees(seed, 1.0)[0] for seed in range(12)]
+    assert 1.8 < np.mean(fitting) < 4.5
+    small = [mean_nees(seed, 0.1)[0] for seed in range(12)]
+    assert np.mean(small) > 100
+    _, report = mean_nees(0, 1.0)
+    assert 0 < report["last"]["sigma_m"] < 1 and report["last"]["error_m"] < 5 * report["last"]["sigma_m"]
+    assert origin_consistency(MultiRobotGraph("lru1", LOCAL), "lru1", {0: np.eye(4)})["status"] == "fewer than two submap origins"

@@ -33,6 +33,7 @@ from slam.lie import rotation_angle, se3_inv, wrap_angle, yaw_of
 
 if TYPE_CHECKING:
     from slam.agent import DetectionRecord
+    from slam.graph import MultiRobotGraph
 
 FACTOR_COLOURS = {"prior": "k", "w": "tab:blue", "v": "tab:cyan", "u": "tab:olive", "d": "tab:red", "c": "tab:green", "o": "tab:purple"}
 LOOP_CLOSURE_TYPES = {"d": "robot_detection", "c": "submap_match", "o": "landmark"}
@@ -77,7 +78,8 @@ def slam_section(out: Path, name: str, slam: SlamInput | None, truth: TeamTruth,
     edges = [(kind, T_world_start @ _h(a), T_world_start @ _h(b)) for kind, a, b in slam.graph.edges()]
     if recorder is not None:
         _record(recorder, name, slam, T_world_start, edges)
-    section["origin_consistency"] = _origin_consistency(name, slam, truth)
+    origins_true = trajectory.frame_origins_truth(slam.start_t, slam.switch_times, truth.of(name))
+    section["origin_consistency"] = origin_consistency(slam.graph, name, origins_true)
     section["beliefs"] = _beliefs(slam.beliefs, truth, T_world_start)
     section["graph"] = _graph_metrics(slam)
     section["detections"] = _detection_metrics(name, slam, truth)
@@ -149,20 +151,18 @@ def _beliefs(beliefs: dict[str, Any], truth: TeamTruth, T_world_map: np.ndarray)
     return out
 
 
-def _origin_consistency(name: str, slam: SlamInput, truth: TeamTruth) -> dict[str, Any]:
-    """How well the final graph knows its own uncertainty: each of the robot's submap
-    origins ``s_k`` after the first, relative to the first (``s_0^-1 s_k``, whose covariance
-    is what the matcher's pairing, eq. 6.1-6.4, and an explorer's revisits judge by), against
-    the truth. ``position_nees``: the NEES of its position (3 dof, the translation part of the
-    right perturbation, with the graph's joint-marginal covariance,
-    :meth:`slam.graph.MultiRobotGraph.relative_covariances`); ``last``: the latest origin's
-    predicted sigma (largest axis) and true position error. A graph whose covariances fit
-    its errors has a mean near 3."""
-    graph = slam.graph
-    origins = trajectory.frame_origins_truth(slam.start_t, slam.switch_times, truth.of(name))
+def origin_consistency(graph: MultiRobotGraph, name: str, origins_true: dict[int, np.ndarray]) -> dict[str, Any]:
+    """How well ``graph`` knows its own uncertainty: each of robot ``name``'s submap origins
+    ``s_k`` after the first, relative to the first (``s_0^-1 s_k``, whose covariance is what
+    the matcher's pairing, eq. 6.1-6.4, and an explorer's revisits judge by), against the
+    true origins ``origins_true`` (frame index -> world pose). ``position_nees``: the NEES of
+    its position (3 dof, the translation part of the right perturbation, with the graph's
+    joint-marginal covariance, :meth:`slam.graph.MultiRobotGraph.relative_covariances`);
+    ``last``: the latest origin's predicted sigma (largest axis) and true position error. A
+    graph whose covariances fit its errors has a mean near 3."""
     S0 = graph.submap_origin(name, 0)
-    indices = sorted(k for k in origins if k > 0 and graph.submap_origin(name, k) is not None)
-    if S0 is None or 0 not in origins or not indices:
+    indices = sorted(k for k in origins_true if k > 0 and graph.submap_origin(name, k) is not None)
+    if S0 is None or 0 not in origins_true or not indices:
         return {"status": "fewer than two submap origins"}
     try:
         covs = graph.relative_covariances([((name, 0), (name, k)) for k in indices])
@@ -173,7 +173,7 @@ def _origin_consistency(name: str, slam: SlamInput, truth: TeamTruth) -> dict[st
         if ((name, 0), (name, k)) not in covs:
             continue
         est = se3_inv(S0) @ graph.submap_origin(name, k)
-        true = se3_inv(origins[0]) @ origins[k]
+        true = se3_inv(origins_true[0]) @ origins_true[k]
         errors.append(est[:3, :3].T @ (true[:3, 3] - est[:3, 3]))
         cov.append(covs[((name, 0), (name, k))][3:, 3:])
     if not errors:
