@@ -874,10 +874,11 @@ def test_gnc_keeps_an_only_link_and_never_raises(monkeypatch):
 def test_origin_consistency_finds_covariances_that_fit_and_ones_that_are_too_small():
     """sim.evaluation.online_slam.origin_consistency on one robot's chain: with switch covariances
     that match the noise drawn, the position NEES of its origins relative to the first averages
-    about 3 (dof) over seeds (2.4 measured); declared ten times too small in sigma, a hundred times more."""
+    about 3 (dof) over seeds (2.4 measured) and the heading's about 1 (1.1); declared ten times too small
+    in sigma, a hundred times more."""
     from sim.evaluation.online_slam import origin_consistency
 
-    def mean_nees(seed: int, declared_scale: float) -> tuple[float, dict]:
+    def mean_nees(seed: int, declared_scale: float) -> tuple[tuple[float, float], dict]:
         rng = np.random.default_rng(seed)
         r = drive("lru1", rng, 0.0, 0.0, 0.0, steps=48, yaw_rate=0.1)
         graph = MultiRobotGraph("lru1", LOCAL)
@@ -888,12 +889,13 @@ def test_origin_consistency_finds_covariances_that_fit_and_ones_that_are_too_sma
         graph.update()
         report = origin_consistency(graph, "lru1", dict(enumerate(r.S)))
         assert report["status"] == "ok" and report["origins"] == len(r.S) - 1
-        return report["position_nees"]["mean"], report
+        return (report["position_nees"]["mean"], report["yaw_nees"]["mean"]), report
 
-    fitting = [mean_nees(seed, 1.0)[0] for seed in range(12)]
-    assert 1.8 < np.mean(fitting) < 4.5
-    small = [mean_nees(seed, 0.1)[0] for seed in range(12)]
-    assert np.mean(small) > 100
+    position, heading = np.mean([mean_nees(seed, 1.0)[0] for seed in range(12)], axis=0)
+    assert 1.8 < position < 4.5 and 0.6 < heading < 1.6
+    position, heading = np.mean([mean_nees(seed, 0.1)[0] for seed in range(12)], axis=0)
+    assert position > 100 and heading > 50
     _, report = mean_nees(0, 1.0)
-    assert 0 < report["last"]["sigma_m"] < 1 and report["last"]["error_m"] < 5 * report["last"]["sigma_m"]
+    last = report["last"]
+    assert 0 < last["sigma_m"] < 1 and last["error_m"] < 5 * last["sigma_m"] and abs(last["yaw_error_deg"]) < 5 * last["yaw_sigma_deg"]
     assert origin_consistency(MultiRobotGraph("lru1", LOCAL), "lru1", {0: np.eye(4)})["status"] == "fewer than two submap origins"

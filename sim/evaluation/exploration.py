@@ -14,8 +14,8 @@ mission frame as they believed it) is reported beside it.
 true path lengths together) and per robot its own ``coverage`` (and over time), its
 ``believed_coverage`` (at its explorer's last answer, ``believed_t``), goals chosen,
 reached, failed and withdrawn (given up for a peer's), revisit goals (active loop
-closing) with the information each was expected to bring, how often its head turned to a peer (active mutual observation), and why and
-when it stopped exploring.
+closing) with the information each was expected to bring, how often its head turned to a
+peer (active mutual observation), and why and when it stopped exploring.
 ``exploration.png`` draws coverage over time and the explored cells by robot with the
 true paths and goals.
 """

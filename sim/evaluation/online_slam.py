@@ -29,7 +29,7 @@ from sim.evaluation import trajectory
 from sim.evaluation.inputs import SlamInput, TeamTruth
 from sim.evaluation.statistics import StatisticsType, statistics
 from sim.evaluation.trajectory import ErrorOverTime
-from slam.lie import rotation_angle, se3_inv, wrap_angle, yaw_of
+from slam.lie import rotation_angle, se3_inv, so3_log, wrap_angle, yaw_of
 
 if TYPE_CHECKING:
     from slam.agent import DetectionRecord
@@ -157,9 +157,10 @@ def origin_consistency(graph: MultiRobotGraph, name: str, origins_true: dict[int
     the matcher's pairing, eq. 6.1-6.4, and an explorer's revisits judge by), against the
     true origins ``origins_true`` (frame index -> world pose). ``position_nees``: the NEES of
     its position (3 dof, the translation part of the right perturbation, with the graph's
-    joint-marginal covariance, :meth:`slam.graph.MultiRobotGraph.relative_covariances`);
-    ``last``: the latest origin's predicted sigma (largest axis) and true position error. A
-    graph whose covariances fit its errors has a mean near 3."""
+    joint-marginal covariance, :meth:`slam.graph.MultiRobotGraph.relative_covariances`) and
+    ``yaw_nees`` of its heading (1 dof: the rotation error about the gravity-aligned origin's
+    z axis); ``last``: the latest origin's predicted sigmas (position: largest axis) and true
+    errors. A graph whose covariances fit its errors has means near 3 and 1."""
     S0 = graph.submap_origin(name, 0)
     indices = sorted(k for k in origins_true if k > 0 and graph.submap_origin(name, k) is not None)
     if S0 is None or 0 not in origins_true or not indices:
@@ -168,7 +169,7 @@ def origin_consistency(graph: MultiRobotGraph, name: str, origins_true: dict[int
         covs = graph.relative_covariances([((name, 0), (name, k)) for k in indices])
     except (RuntimeError, ValueError) as exc:  # gtsam: no marginals of this estimate
         return {"status": f"not evaluated: {exc}"}
-    errors, cov = [], []
+    errors, cov, yaw, yaw_var = [], [], [], []
     for k in indices:
         if ((name, 0), (name, k)) not in covs:
             continue
@@ -176,15 +177,25 @@ def origin_consistency(graph: MultiRobotGraph, name: str, origins_true: dict[int
         true = se3_inv(origins_true[0]) @ origins_true[k]
         errors.append(est[:3, :3].T @ (true[:3, 3] - est[:3, 3]))
         cov.append(covs[((name, 0), (name, k))][3:, 3:])
+        yaw.append(so3_log(est[:3, :3].T @ true[:3, :3])[2])
+        yaw_var.append(covs[((name, 0), (name, k))][2, 2])
     if not errors:
         return {"status": "no covariances"}
     errors, cov = np.array(errors), np.array(cov)
     report, _ = trajectory.nees_report(errors, np.zeros_like(errors), cov, angle_dims=0)
+    yaw = np.array(yaw)[:, None]
+    yaw_report, _ = trajectory.nees_report(yaw, np.zeros_like(yaw), np.array(yaw_var)[:, None, None], angle_dims=1)
     return {
         "status": "ok",
         "origins": len(errors),
         "position_nees": report,
-        "last": {"sigma_m": float(np.sqrt(np.linalg.eigvalsh(cov[-1])[-1])), "error_m": float(np.linalg.norm(errors[-1]))},
+        "yaw_nees": yaw_report,
+        "last": {
+            "sigma_m": float(np.sqrt(np.linalg.eigvalsh(cov[-1])[-1])),
+            "error_m": float(np.linalg.norm(errors[-1])),
+            "yaw_sigma_deg": float(np.degrees(np.sqrt(yaw_var[-1]))),
+            "yaw_error_deg": float(np.degrees(yaw[-1, 0])),
+        },
     }
 
 

@@ -61,8 +61,6 @@ TRUTH_MATCH_S = 1e-6  # s: a truth sample is at the filter's time within this
 #: 0.5 s of samples has a noise of a few thousandths of a degree; the rest is margin for
 #: a robot that is not perfectly still (motors idling, a settling suspension).
 RESTING_TILT_STD = math.radians(0.2)
-
-
 GAZE_PERIOD_S = 0.5  # the peer to look at is chosen again this often (active mutual observation)
 PEER_ESTIMATE_MAX_AGE_S = 5.0  # a peer's periodic estimate older than this places it no more (1.5 m at 0.3 m/s)
 
