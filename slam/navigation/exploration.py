@@ -28,11 +28,12 @@ sensor range". The thesis gives no more detail; this is the textbook form of eac
   not chosen again (nor any cell within ``3 * cell_m`` of it): what is left unexplored
   there could not be seen from it. Nor are cells next to mapped obstacles.
 
-**Active loop closing** (``loop_closing_weight`` > 0; beyond the thesis, its future work in
-9.3 and 10: a goal's value trades new area against revisiting mapped places for
-re-localisation). Exploration that only seeks new ground rarely returns, so submap matching
-(thesis 6.1) has little to close (Stachniss et al. 2004 closed loops actively for this
-reason). Each place the robot could return to (:class:`RevisitPlace`: the origin of a
+**Active loop closing** (``loop_closing_weight`` > 0; beyond the thesis's experiment: its
+9.3 found that frontier exploration left "little overlap, resulting in only a single loop
+closure from our map matching system", and points to active loop closing that "makes a
+trade-off during the selection of goal locations between exploring new areas and
+re-visiting [...] already mapped places for re-localization", Lehner et al. 2017;
+Stachniss et al. 2004 close loops actively for the same reason). Each place the robot could return to (:class:`RevisitPlace`: the origin of a
 finished submap the matcher found suitable, own or a peer's) carries the covariance of its
 position relative to the robot now; a match there would shrink it to about the match's own
 (``loop_closing_match_sigma_m``). The expected information of the revisit is that entropy
