@@ -177,6 +177,16 @@ class AgentStats:
     covariance_s: list[float] = field(default_factory=list)
 
 
+def _chained(S: np.ndarray, chain: dict[int, np.ndarray], start: int, end: int) -> np.ndarray | None:
+    """``S`` composed with the frame switches ``chain[i]`` (local frame ``i`` -> ``i + 1``) for
+    ``start <= i < end``; None if one of them has not arrived."""
+    for i in range(start, end):
+        if i not in chain:
+            return None
+        S = S @ chain[i]
+    return S
+
+
 class Agent:
     """See the module docstring. ``team``: every robot's name (this one included)."""
 
@@ -506,13 +516,7 @@ class Agent:
         while S is None and k > 0:
             k -= 1
             S = self.graph.submap_origin(robot, k)
-        if S is None:
-            return None
-        for i in range(k, frame_index):
-            if i not in chain:
-                return None
-            S = S @ chain[i]
-        return S
+        return None if S is None else _chained(S, chain, k, frame_index)
 
     def pose_in_map(self, robot: str, frame_index: int, T_frame_body: np.ndarray) -> np.ndarray | None:
         """Eq. 4.6 with the graph as it is now: ``robot``'s pose ``T_frame_body`` in its local
@@ -550,13 +554,8 @@ class Agent:
         pose = self.peer_pose.get(robot)
         if pose is None:
             return None
-        chain = self.peer_switches[robot]
-        T = np.eye(4)
-        for i in range(pose.frame_index):
-            if i not in chain:
-                return None
-            T = T @ chain[i]
-        return pose.t, T @ pose.T_frame_body
+        T = _chained(np.eye(4), self.peer_switches[robot], 0, pose.frame_index)
+        return None if T is None else (pose.t, T @ pose.T_frame_body)
 
     def last_detection_t(self, robot: str) -> float:
         """When this robot last detected ``robot``'s markers (-inf: never)."""
