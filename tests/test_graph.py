@@ -874,27 +874,34 @@ def test_gnc_keeps_an_only_link_and_never_raises(monkeypatch):
 def test_origin_consistency_finds_covariances_that_fit_and_ones_that_are_too_small():
     """sim.evaluation.online_slam.origin_consistency on one robot's chain: with switch covariances
     that match the noise drawn, the position NEES of its origins relative to the first averages
-    about 3 (dof) over seeds (2.4 measured) and the heading's about 1 (1.1); declared ten times too small
-    in sigma, a hundred times more."""
+    about 3 (dof) over seeds (2.8 measured), the heading's about 1 (0.7) and each step's about 3 (3.2);
+    declared ten times too small in sigma, a hundred times more; an error repeated in every step
+    leaves the steps near their dof and drives the chain past them."""
     from sim.evaluation.online_slam import origin_consistency
 
-    def mean_nees(seed: int, declared_scale: float) -> tuple[tuple[float, float], dict]:
+    def mean_nees(seed: int, declared_scale: float, repeated_sigmas: float = 0.0, yaw_rate: float = 0.1) -> tuple[tuple[float, float, float], dict]:
         rng = np.random.default_rng(seed)
-        r = drive("lru1", rng, 0.0, 0.0, 0.0, steps=48, yaw_rate=0.1)
+        r = drive("lru1", rng, 0.0, 0.0, 0.0, steps=96, yaw_rate=yaw_rate)
         graph = MultiRobotGraph("lru1", LOCAL)
         for j, t in enumerate(r.switch_t):
             T = se3_inv(r.S[j]) @ r.S[j + 1]
             cov = switch_pose3_covariance(T, switch_covariance(r.per_submap))
-            graph.add_frame_switch("lru1", j, t, noisy(T, cov, rng), cov * declared_scale**2)
+            # an error repeated in every step (a calibration's): this many sigmas along each step's x
+            repeated = se3(np.eye(3), [repeated_sigmas * np.sqrt(cov[3, 3]), 0.0, 0.0])
+            graph.add_frame_switch("lru1", j, t, noisy(T, cov, rng) @ repeated, cov * declared_scale**2)
         graph.update()
         report = origin_consistency(graph, "lru1", dict(enumerate(r.S)))
         assert report["status"] == "ok" and report["origins"] == len(r.S) - 1
-        return (report["position_nees"]["mean"], report["yaw_nees"]["mean"]), report
+        return (report["position_nees"]["mean"], report["yaw_nees"]["mean"], report["step_position_nees"]["mean"]), report
 
-    position, heading = np.mean([mean_nees(seed, 1.0)[0] for seed in range(12)], axis=0)
-    assert 1.8 < position < 4.5 and 0.6 < heading < 1.6
-    position, heading = np.mean([mean_nees(seed, 0.1)[0] for seed in range(12)], axis=0)
-    assert position > 100 and heading > 50
+    position, heading, step = np.mean([mean_nees(seed, 1.0)[0] for seed in range(12)], axis=0)
+    assert 1.8 < position < 4.5 and 0.6 < heading < 1.6 and 2.0 < step < 4.0
+    position, heading, step = np.mean([mean_nees(seed, 0.1)[0] for seed in range(12)], axis=0)
+    assert position > 100 and heading > 50 and step > 100
+    # two sigmas repeated in all 11 steps of a straight drive: each step is off by what one error
+    # of that size gives (3 + 4), the chain by growing multiples of it (about 3 + 4 k at the k-th origin)
+    position, heading, step = np.mean([mean_nees(seed, 1.0, repeated_sigmas=2.0, yaw_rate=0.0)[0] for seed in range(12)], axis=0)
+    assert step < 9 and position > 2.5 * step
     _, report = mean_nees(0, 1.0)
     last = report["last"]
     assert 0 < last["sigma_m"] < 1 and last["error_m"] < 5 * last["sigma_m"] and abs(last["yaw_error_deg"]) < 5 * last["yaw_sigma_deg"]

@@ -159,41 +159,54 @@ def origin_consistency(graph: MultiRobotGraph, name: str, origins_true: dict[int
     its position (3 dof, the translation part of the right perturbation, with the graph's
     joint-marginal covariance, :meth:`slam.graph.MultiRobotGraph.relative_covariances`) and
     ``yaw_nees`` of its heading (1 dof: the rotation error about the gravity-aligned origin's
-    z axis); ``last``: the latest origin's predicted sigmas (position: largest axis) and true
-    errors. A graph whose covariances fit its errors has means near 3 and 1."""
+    z axis); ``step_position_nees``: the same for each origin relative to the one before
+    (``s_(k-1)^-1 s_k``, one frame switch's span). Steps that fit while the whole chain does not
+    mean errors that repeat from step to step, which independent frame-switch factors (eq. 4.6)
+    cannot represent. ``last``: the latest origin's predicted sigmas (position: largest axis)
+    and true errors. A graph whose covariances fit its errors has means near 3 and 1."""
     S0 = graph.submap_origin(name, 0)
     indices = sorted(k for k in origins_true if k > 0 and graph.submap_origin(name, k) is not None)
     if S0 is None or 0 not in origins_true or not indices:
         return {"status": "fewer than two submap origins"}
+    present = set(indices) | {0}
+    chain = [(0, k) for k in indices]
+    steps = [(k - 1, k) for k in indices if k - 1 in present]
     try:
-        covs = graph.relative_covariances([((name, 0), (name, k)) for k in indices])
+        covs = graph.relative_covariances([((name, a), (name, b)) for a, b in chain + steps])
     except (RuntimeError, ValueError) as exc:  # gtsam: no marginals of this estimate
         return {"status": f"not evaluated: {exc}"}
-    errors, cov, yaw, yaw_var = [], [], [], []
-    for k in indices:
-        if ((name, 0), (name, k)) not in covs:
-            continue
-        est = se3_inv(S0) @ graph.submap_origin(name, k)
-        true = se3_inv(origins_true[0]) @ origins_true[k]
-        errors.append(est[:3, :3].T @ (true[:3, 3] - est[:3, 3]))
-        cov.append(covs[((name, 0), (name, k))][3:, 3:])
-        yaw.append(so3_log(est[:3, :3].T @ true[:3, :3])[2])
-        yaw_var.append(covs[((name, 0), (name, k))][2, 2])
-    if not errors:
+
+    def relative_errors(pairs):
+        errors, cov, yaw, yaw_var = [], [], [], []
+        for a, b in pairs:
+            if ((name, a), (name, b)) not in covs:
+                continue
+            C = covs[((name, a), (name, b))]
+            est = se3_inv(graph.submap_origin(name, a)) @ graph.submap_origin(name, b)
+            true = se3_inv(origins_true[a]) @ origins_true[b]
+            errors.append(est[:3, :3].T @ (true[:3, 3] - est[:3, 3]))
+            cov.append(C[3:, 3:])
+            yaw.append(so3_log(est[:3, :3].T @ true[:3, :3])[2])
+            yaw_var.append(C[2, 2])
+        return np.array(errors), np.array(cov), np.array(yaw)[:, None], np.array(yaw_var)[:, None, None]
+
+    errors, cov, yaw, yaw_var = relative_errors(chain)
+    if not len(errors):
         return {"status": "no covariances"}
-    errors, cov = np.array(errors), np.array(cov)
     report, _ = trajectory.nees_report(errors, np.zeros_like(errors), cov, angle_dims=0)
-    yaw = np.array(yaw)[:, None]
-    yaw_report, _ = trajectory.nees_report(yaw, np.zeros_like(yaw), np.array(yaw_var)[:, None, None], angle_dims=1)
+    yaw_report, _ = trajectory.nees_report(yaw, np.zeros_like(yaw), yaw_var, angle_dims=1)
+    step_errors, step_cov, _, _ = relative_errors(steps)
+    step_report = trajectory.nees_report(step_errors, np.zeros_like(step_errors), step_cov, angle_dims=0)[0] if len(step_errors) else None
     return {
         "status": "ok",
         "origins": len(errors),
         "position_nees": report,
         "yaw_nees": yaw_report,
+        "step_position_nees": step_report,
         "last": {
             "sigma_m": float(np.sqrt(np.linalg.eigvalsh(cov[-1])[-1])),
             "error_m": float(np.linalg.norm(errors[-1])),
-            "yaw_sigma_deg": float(np.degrees(np.sqrt(yaw_var[-1]))),
+            "yaw_sigma_deg": float(np.degrees(np.sqrt(yaw_var[-1, 0, 0]))),
             "yaw_error_deg": float(np.degrees(yaw[-1, 0])),
         },
     }
