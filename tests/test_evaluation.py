@@ -81,3 +81,57 @@ def test_truth_since_starts_in_the_gravity_aligned_first_pose(tmp_path):
     write_tum(tmp_path / "gt.tum", world)  # the logged quaternions, as they came
     first = (tmp_path / "gt.tum").read_text().splitlines()[1].split()
     assert [float(v) for v in first[4:]] == pytest.approx([*rows[1][4:], rows[1][3]], abs=1e-8)
+
+
+# ---------------------------------------------------------------------------- the VO's deltas against truth
+
+
+def test_vo_delta_scores_fit_deltas_drawn_from_their_covariance_and_flag_overconfident_ones():
+    """sim.evaluation.vo_consistency: deltas drawn with the covariance they report score a
+    NEES near 6 (3 + 3); the same deltas reporting a hundredth of it, a hundred times more.
+    Frames older than the VO's oldest keyframe are dropped, and a delta whose keyframe has
+    no true pose is counted, not scored. Deltas all 3 % too long show as that scale error."""
+    from sim.evaluation.vo_consistency import VoDeltaScores
+    from slam.lie import se3, so3_exp
+    from slam.vo import VoResult
+
+    def run(report_scale: float) -> dict:
+        rng = np.random.default_rng(3)
+        scores = VoDeltaScores()
+        cov = np.diag([np.radians(0.05) ** 2] * 3 + [0.002**2] * 3)
+        L = np.linalg.cholesky(cov)
+        poses = [se3(so3_exp(np.array([0.0, 0.0, 0.02 * k])), [0.1 * k, 0.01 * k, 0.0]) for k in range(400)]
+        for k, T in enumerate(poses):
+            scores.capture(k, T)
+            kf = 5 * (k // 5)
+            if k == kf:
+                continue
+            true = np.linalg.inv(poses[kf]) @ T
+            xi = L @ rng.standard_normal(6)  # T_true = T_est Exp(xi)
+            est = true @ np.linalg.inv(se3(so3_exp(xi[:3]), xi[3:]))
+            result = VoResult(t=0.1 * k, frame_id=k, ok=True, reason=None, keyframe_id=kf, T_kf_cur=est, cov=cov * report_scale,
+                              inliers=50, keypoints=np.zeros((0, 2)), new_keyframe=False, keyframe_history=(kf,))
+            scores.score(result)
+        assert len(scores._true) <= 6  # only the frames since the oldest keyframe
+        lost = VoResult(t=0.0, frame_id=399, ok=True, reason=None, keyframe_id=3, T_kf_cur=np.eye(4), cov=cov,
+                        inliers=50, keypoints=np.zeros((0, 2)), new_keyframe=False, keyframe_history=(395,))
+        scores.score(lost)
+        report = scores.report()
+        assert report["status"] == "ok" and report["deltas"] == 320 and report["unscored"] == 1
+        return report
+
+    fit = run(1.0)
+    assert 5.0 < fit["nees"]["mean"] < 7.0 and 2.4 < fit["nees_rotation"]["mean"] < 3.6 and 2.4 < fit["nees_translation"]["mean"] < 3.6
+    assert 0.02 < fit["median_rotation_error_deg"] < 0.15 and 1.0 < fit["median_translation_error_mm"] < 6.0
+    assert run(0.01)["nees"]["mean"] > 100 * 5.0
+    assert abs(fit["scale_error"]["median"]) < 0.01 and fit["scale_error"]["deltas"] == 320
+    # every delta 3 % too long (a depth bias common to all of them): the scale error says so
+    scores = VoDeltaScores()
+    for k in range(20):
+        scores.capture(k, se3(np.eye(3), [0.1 * k, 0.0, 0.0]))
+        if k:
+            long = se3(np.eye(3), [0.1 * k * 1.03, 0.0, 0.0])
+            scores.score(VoResult(t=0.1 * k, frame_id=k, ok=True, reason=None, keyframe_id=0, T_kf_cur=long, cov=np.eye(6) * 1e-4,
+                                  inliers=50, keypoints=np.zeros((0, 2)), new_keyframe=False, keyframe_history=(0,)))
+    assert scores.report()["scale_error"]["median"] == pytest.approx(0.03)
+    assert VoDeltaScores().report()["status"] == "no deltas scored"

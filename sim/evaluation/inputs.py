@@ -65,6 +65,7 @@ class FilterInput:
     bias: np.ndarray  # (N, 6): accelerometer, gyro
     bias_true: np.ndarray
     vo: dict  # LocalEstimator.vo_report(): counts, rejections and failures by reason
+    vo_deltas: dict  # VoDeltaScores.report(): the deltas against the true camera motion
     rest: dict  # LocalEstimator.rest_report(): zero-velocity updates and their intervals
     frame_switches: int
 
@@ -195,6 +196,7 @@ def filter_input(onboard: OnboardStack) -> FilterInput:
         bias=_stack(log.bias, 6),
         bias_true=_stack(log.bias_true, 6),
         vo=estimator.vo_report(),
+        vo_deltas=onboard.vo_scores.report(),
         rest=estimator.rest_report(),
         frame_switches=len(estimator.switches),
     )

@@ -305,7 +305,7 @@ def _filter_section(
         "gyro_initial_dps": float(np.degrees(np.linalg.norm(bias_true[0, 3:] - bias[0, 3:]))),
         "gyro_final_dps": float(np.degrees(np.linalg.norm(bias_true[-1, 3:] - bias[-1, 3:]))),
     }
-    section["vo"] = {**filt.vo, "rejected_by_gate": filt.vo["rejections_by_reason"].get("gate", 0)}
+    section["vo"] = {**filt.vo, "rejected_by_gate": filt.vo["rejections_by_reason"].get("gate", 0), "deltas_against_truth": filt.vo_deltas}
     section["zero_velocity"] = {**filt.rest, **_rest_against_truth(filt.rest["intervals"], truth)}
     section["frame_switches"] = filt.frame_switches
     return section, FilterPlot(error_over_time, nees)

@@ -28,6 +28,7 @@ import mujoco
 import numpy as np
 
 from comms import Delivery, Network
+from sim.evaluation.vo_consistency import VoDeltaScores
 from sim.robots.base import Robot
 from sim.run.faults import measurement_faults
 from sim.run.lanes import Lane, Priority
@@ -204,6 +205,7 @@ class OnboardStack:
         self._switch_pending = False
         self.log = EstimateLog()
         self.slam_log = SlamLog()
+        self.vo_scores = VoDeltaScores()  # the VO's deltas against the true camera poses the run captures
         self.on_vo_result = None  # optional callback(result), e.g. the recording
         self.on_mapped = None  # optional callback(frame_id, depth, classification), e.g. the evaluation
         # its map frame is the gravity-aligned frame of its pose at the filter's start, which it believes
@@ -346,6 +348,7 @@ class OnboardStack:
         self.lane.submit("filter_update", work=lambda: self.estimator.abandon(frame_id))
 
     def _vo_done(self, result: VoResult) -> None:
+        self.vo_scores.score(result)
         if self.on_vo_result is not None:
             self.on_vo_result(result)
         self.lane.submit("filter_update", work=lambda: self._apply_vo(result))

@@ -688,6 +688,7 @@ class Run:
             if onboard is not None:
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
+                    onboard.vo_scores.capture(frame, self._camera_pose(rig.left_camera))
                     if runtime.image_cells is not None:
                         runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), pair)
                 onboard.detection(now, rig, T_body_cam, searches.get(k))
