@@ -789,6 +789,10 @@ class SlamConfig(StrictModel):
         SlamParam(FilterParams, "extrinsic_translation_std"),
         description="std per axis of the VO camera-IMU calibration's translation, held by the filter as consider parameters",
     )
+    vo_keyframe_map_error: bool = slam_field(
+        SlamParam(FilterParams, "keyframe_map_error"),
+        description="the VO deltas' error from their keyframe's 3D points enters once per keyframe, not with every delta (false: thesis 4.1.1)",
+    )
     frame_switch_distance_m: PositiveFloat = Field(
         5.0, description="without mapping only: frame switch after this distance driven in the current frame"
     )

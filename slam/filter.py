@@ -113,7 +113,7 @@ from functools import cache
 import numpy as np
 from scipy.stats import chi2
 
-from slam.lie import euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_z, rot_zyx, se3, skew, so3_exp, so3_exp_batch, so3_log
+from slam.lie import adjoint, euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_z, rot_zyx, se3, skew, so3_exp, so3_exp_batch, so3_log
 
 CORE = 15  # [dp, dv, dtheta, db_a, db_w]
 MISALIGNMENT = 2  # consider [k_x, k_y]: the accelerometer's z-axis misalignment, when modelled
@@ -167,6 +167,10 @@ class FilterParams:
     ``disparity_bias_std`` (px): a disparity offset common to all points of the VO rig (a
     residual yaw of the rectified pair; 0.25 px: 0.04 deg at the LRU's 338 px focal
     length), one more consider parameter, seen through each delta's sensitivity.
+    ``keyframe_map_error``: the VO deltas' share of error from their keyframe's 3D points
+    goes onto the keyframe's clone once (:meth:`LocalReferenceFilter.update_relative_pose`,
+    ``keyframe_map_cov``) instead of into every delta; False: each delta with its whole
+    covariance, as thesis 4.1.1.
     """
 
     gyro_noise_density: float
@@ -190,6 +194,7 @@ class FilterParams:
     extrinsic_rotation_std: float = math.radians(0.2)
     extrinsic_translation_std: float = 0.005
     disparity_bias_std: float = 0.25
+    keyframe_map_error: bool = True
 
     def __post_init__(self):
         for name in ("gyro_noise_density", "accel_noise_density", "gyro_bias_random_walk", "accel_bias_random_walk"):
@@ -231,12 +236,17 @@ def _vector(x, n: int, name: str) -> np.ndarray:
     return a
 
 
-def _covariance(c, n: int, name: str) -> np.ndarray:
+def _covariance(c, n: int, name: str, semidefinite: bool = False) -> np.ndarray:
     a = np.array(c, dtype=float)
     if a.shape != (n, n):
         raise FilterException(f"{name} must have shape ({n}, {n}), got {a.shape}")
     if not np.all(np.isfinite(a)) or np.abs(a - a.T).max() > 1e-9 * np.abs(a).max():
         raise FilterException(f"{name} must be a finite symmetric matrix")
+    if semidefinite:
+        lam = np.linalg.eigvalsh(0.5 * (a + a.T))
+        if lam[0] < -1e-9 * max(lam[-1], 0.0):
+            raise FilterException(f"{name} must be positive semidefinite, eigenvalues {lam}")
+        return 0.5 * (a + a.T)
     try:
         np.linalg.cholesky(a)
     except np.linalg.LinAlgError:
@@ -300,6 +310,7 @@ class _Snapshot:
     steps: int
     clone_ids: tuple[int, ...]
     clone_t: tuple[float, ...]
+    mapped: frozenset[int]  # clones that carry their keyframe's map error
     cR: np.ndarray  # (n, 3, 3) clone attitudes, in clone_ids order
     cp: np.ndarray  # (n, 3) clone positions
     P: np.ndarray  # (15 + 6 n) square covariance
@@ -391,6 +402,7 @@ class LocalReferenceFilter:
         """No clones yet (state augmentation, eq. 4.3): ids and capture times; attitudes and
         positions in fixed buffers of ``max_clones`` rows, the first ``len(_clone_ids)`` in use."""
         self._clone_ids: list[int] = []
+        self._mapped: set[int] = set()  # keyframe clones that carry their map's error (:meth:`update_relative_pose`)
         self._clone_t: list[float] = []
         self._cR = np.zeros((self.params.max_clones, 3, 3))
         self._cp = np.zeros((self.params.max_clones, 3))
@@ -678,6 +690,7 @@ class LocalReferenceFilter:
         self._cR[k : n - 1] = self._cR[k + 1 : n].copy()
         self._cp[k : n - 1] = self._cp[k + 1 : n].copy()
         del self._clone_ids[k], self._clone_t[k]
+        self._mapped.discard(clone_id)
 
     # ------------------------------------------------------------------ updates
 
@@ -689,6 +702,7 @@ class LocalReferenceFilter:
         cov: np.ndarray,
         extrinsic_jacobian: np.ndarray | None = None,
         disparity_sensitivity: np.ndarray | None = None,
+        keyframe_map_cov: np.ndarray | None = None,
     ) -> float:
         """Visual-odometry delta pose ``T_kf_cur`` (body frames of the two clones) with
         6x6 covariance ``[rotation, translation]``, right perturbation. Applied as if it
@@ -702,24 +716,36 @@ class LocalReferenceFilter:
         where the filter holds ``e`` as consider parameters, the update accounts for it
         through them (the same ``e`` in every delta), else it is ignored.
         ``disparity_sensitivity`` (6,): the same for the rig's disparity offset, in the
-        body delta's tangent (per pixel)."""
+        body delta's tangent (per pixel).
+
+        ``keyframe_map_cov`` (6x6, the delta's tangent): the error the keyframe's 3D points
+        put into every delta against it (:func:`slam.vo.map_covariance`), left out of
+        ``cov``. The first such delta moves it onto the keyframe's clone, once: the clone
+        then stands for the frame of the keyframe's map, ``T_kf Exp(eps)`` with
+        ``eps = -Ad_T n`` for a delta error ``n`` (``(T_kf Exp(eps))^-1 T_cur = T Exp(-Ad_{T^-1}
+        eps)``), independent of the rest of the state; in the clone's error state (``dtheta``
+        left, ``dp`` additive, local frame) that is ``blockdiag(R_kf, R_kf)``. Every later delta
+        against the keyframe then sees the same map error instead of a new one (thesis 4.1.1
+        fuses each delta as independent; consecutive deltas against one keyframe err alike,
+        docs/slam.md)."""
         T = np.array(T_kf_cur, dtype=float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise FilterException(f"T_kf_cur must be a finite 4x4 transform, got shape {T.shape}")
         if np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max() > 1e-6 or np.any(T[3] != (0.0, 0.0, 0.0, 1.0)):
             raise FilterException("T_kf_cur must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
         C = _covariance(cov, 6, "cov")
+        M = None if keyframe_map_cov is None else _covariance(keyframe_map_cov, 6, "keyframe_map_cov", semidefinite=True)
         J = self._consider_jacobian(extrinsic_jacobian, disparity_sensitivity)
         if kf_clone_id == cur_clone_id:
             raise FilterException(f"a relative pose needs two different clones, got {kf_clone_id!r} twice")
         ks = [self._clone_index(kf_clone_id), self._clone_index(cur_clone_id)]
         anchor_id = cur_clone_id if self._clone_t[ks[1]] >= self._clone_t[ks[0]] else kf_clone_id
         anchor_t = max(self._clone_t[ks[0]], self._clone_t[ks[1]])
-        event = ["relpose", anchor_t, kf_clone_id, cur_clone_id, T, C, J]
+        event = ["relpose", anchor_t, kf_clone_id, cur_clone_id, T, C, J, M]
         anchor = self._clone_event.get(anchor_id)
         replayable = anchor is not None and anchor[1] == anchor_t and {kf_clone_id, cur_clone_id} <= set(anchor[3].clone_ids)
         if anchor_t == self._t or not replayable:
-            nis = self._relpose(kf_clone_id, cur_clone_id, T, C, J)  # in time, or stochastic cloning only
+            nis = self._relpose(kf_clone_id, cur_clone_id, T, C, J, M)  # in time, or stochastic cloning only
             if self._log:
                 self._log.append(event)
             return nis
@@ -771,7 +797,18 @@ class LocalReferenceFilter:
         H[3:6, 9:12] = RcT
         return se3(R_pred, p_pred), (R_pred, p_pred), idx, H
 
-    def _relpose(self, kf_id: int, cur_id: int, T: np.ndarray, C: np.ndarray, J: tuple[np.ndarray, np.ndarray] | None) -> float:
+    def _relpose(
+        self, kf_id: int, cur_id: int, T: np.ndarray, C: np.ndarray, J: tuple[np.ndarray, np.ndarray] | None, M: np.ndarray | None
+    ) -> float:
+        if M is not None and kf_id not in self._mapped:  # the keyframe's map error, onto its clone (update_relative_pose)
+            k = self._clone_index(kf_id)
+            o = self._base + CLONE * k
+            A = adjoint(T)
+            G = np.zeros((6, 6))
+            G[0:3, 0:3] = G[3:6, 3:6] = self._cR[k]
+            GA = G @ A
+            self._Pbuf[o : o + CLONE, o : o + CLONE] += GA @ M @ GA.T
+            self._mapped.add(kf_id)
         _, (R_pred, p_pred), idx, H = self._relative_pose_model(kf_id, cur_id)
         r = np.concatenate([so3_log(R_pred.T @ T[:3, :3]), R_pred.T @ (T[:3, 3] - p_pred)])
         if J is not None:  # the consider parameters it sees (Schmidt, module docstring)
@@ -994,6 +1031,7 @@ class LocalReferenceFilter:
             steps=self._steps,
             clone_ids=tuple(self._clone_ids),
             clone_t=tuple(self._clone_t),
+            mapped=frozenset(self._mapped),
             cR=self._cR[:n].copy(),
             cp=self._cp[:n].copy(),
             P=self._Pbuf[:d, :d].copy(),
@@ -1005,6 +1043,7 @@ class LocalReferenceFilter:
         self._ba, self._bw = s.ba, s.bw
         self._f_prev, self._w_prev, self._dt_last, self._steps = s.f_prev, s.w_prev, s.dt_last, s.steps
         self._clone_ids, self._clone_t = list(s.clone_ids), list(s.clone_t)
+        self._mapped = set(s.mapped)
         n = len(self._clone_ids)
         self._cR[:n] = s.cR
         self._cp[:n] = s.cp
@@ -1032,7 +1071,7 @@ class LocalReferenceFilter:
             elif kind == "drop":
                 self._drop(event[2])
             elif kind == "relpose":
-                value = self._relpose(*event[2:7])
+                value = self._relpose(*event[2:8])
                 if event is watch:
                     nis = value
             elif kind == "vel":

@@ -158,6 +158,7 @@ class VoResult:
     keyframe_history: tuple[int, ...]  # frame_ids of the kept keyframes, newest last
     matches: int = 0  # tracked features before PnP (diagnostics)
     disparity_sensitivity: np.ndarray | None = None  # (6,) how T_kf_cur moves per pixel of disparity offset (:func:`disparity_bias_sensitivity`)
+    map_cov: np.ndarray | None = None  # 6x6 share of ``cov`` from the keyframe's points, alike in all its deltas (:func:`map_covariance`)
 
 
 @dataclass
@@ -180,6 +181,7 @@ class _Measurement:
     inlier_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     matches: int = 0
     disparity_sensitivity: np.ndarray | None = None
+    map_cov: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- geometry helpers
@@ -326,6 +328,25 @@ def disparity_bias_sensitivity(
     return np.linalg.solve(H, g)
 
 
+def map_covariance(T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarray, K: np.ndarray, pixel_noise_px: float) -> np.ndarray:
+    """The share of the refined pose's covariance ``H^-1`` (:func:`refine_pose`) that comes
+    from the keyframe's 3D points (their stereo covariance ``Σ_X``, eq. 5.2) rather than from
+    the pixel noise of the current image: with ``C_i = Δp^2 I + P_i`` (``P_i`` the projected
+    ``Σ_X``), the estimate's error is ``H^-1 Σ J_i^T W_i e_i`` and its covariance splits into
+    ``Δp^2 H^-1 (Σ J_i^T W_i W_i J_i) H^-1`` (pixel noise, new in every frame) and the rest,
+    returned here (6x6, the tangent of :func:`refine_pose`). The points' errors are those of
+    the keyframe, the same in every delta measured against it, so that share does not
+    average out over the deltas of one keyframe (our addition: thesis 4.1.1 fuses each
+    delta with its whole covariance, as if the deltas were independent)."""
+    _, J, W, _ = _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
+    WJ = W @ J
+    H = J.reshape(-1, 6).T @ WJ.reshape(-1, 6)
+    Hinv = np.linalg.inv(H)
+    pixel = pixel_noise_px**2 * Hinv @ (WJ.reshape(-1, 6).T @ WJ.reshape(-1, 6)) @ Hinv
+    lam, V = np.linalg.eigh(0.5 * ((Hinv - pixel) + (Hinv - pixel).T))
+    return (V * np.maximum(lam, 0.0)) @ V.T
+
+
 # --------------------------------------------------------------------------- the odometry
 
 
@@ -416,7 +437,7 @@ class StereoVO:
             return VoResult(t, frame_id, False, reason, None, None, None, 0, np.zeros((0, 2)), new_kf, history,
                             0 if meas is None else meas.matches)
         return VoResult(t, frame_id, True, None, ref.frame_id, meas.T, meas.cov, len(meas.inlier_uv), meas.inlier_uv,
-                        new_kf, history, meas.matches, meas.disparity_sensitivity)
+                        new_kf, history, meas.matches, meas.disparity_sensitivity, meas.map_cov)
 
     # ------------------------------------------------------------------ keyframes
 
@@ -577,10 +598,11 @@ class StereoVO:
         try:
             cov = np.linalg.inv(H)
             s = disparity_bias_sensitivity(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, c.fb)
+            map_cov = map_covariance(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px)
         except np.linalg.LinAlgError:
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
         std = np.sqrt(np.diag(cov))
         if (not np.all(np.isfinite(cov)) or not np.all(np.isfinite(s)) or np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0)
                 or std[:3].max() > p.max_rotation_std_rad or std[3:].max() > p.max_translation_std_m):
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
-        return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n, s)
+        return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n, s, map_cov)

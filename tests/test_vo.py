@@ -34,6 +34,7 @@ from slam.vo import (
     delta_in_body_frame,
     disparity_bias_sensitivity,
     extrinsic_sensitivity,
+    map_covariance,
     refine_pose,
     stereo_point_covariance,
 )
@@ -129,6 +130,40 @@ def test_refined_pose_covariance_is_consistent_on_synthetic_noise():
         e = pose_error(T_hat, T)
         nees.append(e @ H @ e)
     assert 5.4 < np.mean(nees) < 6.6, np.mean(nees)
+
+
+def test_map_covariance_is_the_share_of_the_keyframe_points():
+    """One keyframe's noisy points (drawn once) and many current images with fresh pixel
+    noise: the refined poses scatter by the pixel share ``H^-1 - map_covariance`` around a
+    pose the points moved; over many keyframes that pose itself scatters by
+    ``map_covariance``. Both Monte-Carlo covariances agree with the split."""
+    rng = np.random.default_rng(4)
+    n, sigma = 80, 0.5
+    uv0 = np.stack([rng.uniform(10, 310, n), rng.uniform(10, 230, n)], axis=1)
+    z = rng.uniform(1.5, 5.0, n)
+    X = np.stack([(uv0[:, 0] - CAL.cx) * z / CAL.focal_px, (uv0[:, 1] - CAL.cy) * z / CAL.focal_px, z], axis=1)
+    T = se3(so3_exp([0.02, 0.1, -0.01]), [0.1, -0.02, 0.4])
+    Xc = (X - T[:3, 3]) @ T[:3, :3]
+    uv1 = CAL.focal_px * Xc[:, :2] / Xc[:, 2:3] + [CAL.cx, CAL.cy]
+    f, b = CAL.focal_px, CAL.baseline_m
+    ul, v, ur = f * X[:, 0] / z + CAL.cx, f * X[:, 1] / z + CAL.cy, f * (X[:, 0] - b) / z + CAL.cx
+    cov_X = stereo_point_covariance(X, CAL, sigma)
+    _, H, _, _ = refine_pose(T, X, cov_X, uv1, CAL.K, sigma, 0)
+    M = map_covariance(T, X, cov_X, uv1, CAL.K, sigma)
+    pixel = np.linalg.inv(H) - M
+    assert np.linalg.eigvalsh(M)[0] >= 0 and np.linalg.eigvalsh(pixel)[0] > 0
+    assert 0.3 < np.trace(M[3:, 3:]) / np.trace(np.linalg.inv(H)[3:, 3:]) < 0.9  # a large share: the keyframe's depths
+    keyframes, within = [], []
+    for _ in range(150):
+        Xn = triangulate(*(c + sigma * rng.standard_normal(n) for c in (ul, v, ur, v)), CAL)
+        cov_n = stereo_point_covariance(Xn, CAL, sigma)
+        poses = [refine_pose(T, Xn, cov_n, uv1 + sigma * rng.standard_normal((n, 2)), CAL.K, sigma, 8)[0] for _ in range(8)]
+        errs = np.array([pose_error(T, P) for P in poses])
+        keyframes.append(errs.mean(axis=0))
+        within.append(errs - errs.mean(axis=0))
+    within = np.concatenate(within) * np.sqrt(8 / 7)  # deviations from each keyframe's own mean
+    for mc, model in ((np.cov(np.array(keyframes).T) - pixel / 8, M), (within.T @ within / len(within), pixel)):
+        np.testing.assert_allclose(np.sqrt(np.diag(mc)), np.sqrt(np.diag(model)), rtol=0.25)
 
 
 def test_delta_in_body_frame_moves_the_covariance_with_the_adjoint():
