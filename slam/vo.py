@@ -602,7 +602,8 @@ class StereoVO:
         except np.linalg.LinAlgError:
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
         std = np.sqrt(np.diag(cov))
-        if (not np.all(np.isfinite(cov)) or not np.all(np.isfinite(s)) or np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0)
+        if (not np.all(np.isfinite(cov)) or not np.all(np.isfinite(s)) or not np.all(np.isfinite(map_cov))
+                or np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0)
                 or std[:3].max() > p.max_rotation_std_rad or std[3:].max() > p.max_translation_std_m):
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
         return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n, s, map_cov)
