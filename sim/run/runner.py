@@ -688,9 +688,10 @@ class Run:
             if onboard is not None:
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
-                    onboard.vo_scores.capture(frame, self._camera_pose(rig.left_camera))
+                    T_world_cam = self._camera_pose(rig.left_camera)
+                    onboard.vo_scores.capture(frame, T_world_cam)
                     if runtime.image_cells is not None:
-                        runtime.capture_truth[frame] = (self._camera_pose(rig.left_camera), self._others(runtime.robot), pair)
+                        runtime.capture_truth[frame] = (T_world_cam, self._others(runtime.robot), pair)
                 onboard.detection(now, rig, T_body_cam, searches.get(k))
             if for_vo:
                 on_done = lambda depth, t_done, r=runtime, p=pair, g=rig, f=frame, t0=now: self._stereo_done(r, g, images.result(p), depth, f, t0)  # noqa: E731
