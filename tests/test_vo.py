@@ -107,21 +107,26 @@ def test_point_covariance_diagonal_is_eq_5_2_and_matches_monte_carlo():
                                    atol=1e-3 * np.abs(stereo_point_covariance(X[k : k + 1], CAL, 0.05)[0]).max())
 
 
+def synthetic_scene(rng: np.random.Generator, n: int, z_max: float, T: np.ndarray):
+    """``n`` points at depths 1.5-``z_max`` m spread over the keyframe's image, their pixels
+    ``uv1`` in a current camera at ``T`` (noise-free) and their keyframe stereo
+    observations ``(u_left, v, u_right)``."""
+    uv0 = np.stack([rng.uniform(10, 310, n), rng.uniform(10, 230, n)], axis=1)
+    z = rng.uniform(1.5, z_max, n)
+    X = np.stack([(uv0[:, 0] - CAL.cx) * z / CAL.focal_px, (uv0[:, 1] - CAL.cy) * z / CAL.focal_px, z], axis=1)
+    Xc = (X - T[:3, 3]) @ T[:3, :3]
+    uv1 = CAL.focal_px * Xc[:, :2] / Xc[:, 2:3] + [CAL.cx, CAL.cy]
+    f, b = CAL.focal_px, CAL.baseline_m
+    return X, uv1, (f * X[:, 0] / z + CAL.cx, f * X[:, 1] / z + CAL.cy, f * (X[:, 0] - b) / z + CAL.cx)
+
+
 def test_refined_pose_covariance_is_consistent_on_synthetic_noise():
     """Pixel noise on the keyframe's stereo pair and on the current image, exactly as
     modelled: the weighted Gauss-Newton estimate's NEES averages 6."""
     rng = np.random.default_rng(1)
     n, sigma = 80, 0.5
-    uv0 = np.stack([rng.uniform(10, 310, n), rng.uniform(10, 230, n)], axis=1)
-    z = rng.uniform(1.5, 5.0, n)
-    X = np.stack([(uv0[:, 0] - CAL.cx) * z / CAL.focal_px, (uv0[:, 1] - CAL.cy) * z / CAL.focal_px, z], axis=1)
-    T = np.eye(4)
-    T[:3, :3] = so3_exp([0.02, 0.1, -0.01])
-    T[:3, 3] = [0.1, -0.02, 0.4]
-    Xc = (X - T[:3, 3]) @ T[:3, :3]
-    uv1 = CAL.focal_px * Xc[:, :2] / Xc[:, 2:3] + [CAL.cx, CAL.cy]
-    f, b = CAL.focal_px, CAL.baseline_m
-    ul, v, ur = f * X[:, 0] / z + CAL.cx, f * X[:, 1] / z + CAL.cy, f * (X[:, 0] - b) / z + CAL.cx
+    T = se3(so3_exp([0.02, 0.1, -0.01]), [0.1, -0.02, 0.4])
+    _, uv1, (ul, v, ur) = synthetic_scene(rng, n, 5.0, T)
     nees = []
     for _ in range(300):
         Xn = triangulate(*(c + sigma * rng.standard_normal(n) for c in (ul, v, ur, v)), CAL)
@@ -139,14 +144,8 @@ def test_map_covariance_is_the_share_of_the_keyframe_points():
     ``map_covariance``. Both Monte-Carlo covariances agree with the split."""
     rng = np.random.default_rng(4)
     n, sigma = 80, 0.5
-    uv0 = np.stack([rng.uniform(10, 310, n), rng.uniform(10, 230, n)], axis=1)
-    z = rng.uniform(1.5, 5.0, n)
-    X = np.stack([(uv0[:, 0] - CAL.cx) * z / CAL.focal_px, (uv0[:, 1] - CAL.cy) * z / CAL.focal_px, z], axis=1)
     T = se3(so3_exp([0.02, 0.1, -0.01]), [0.1, -0.02, 0.4])
-    Xc = (X - T[:3, 3]) @ T[:3, :3]
-    uv1 = CAL.focal_px * Xc[:, :2] / Xc[:, 2:3] + [CAL.cx, CAL.cy]
-    f, b = CAL.focal_px, CAL.baseline_m
-    ul, v, ur = f * X[:, 0] / z + CAL.cx, f * X[:, 1] / z + CAL.cy, f * (X[:, 0] - b) / z + CAL.cx
+    X, uv1, (ul, v, ur) = synthetic_scene(rng, n, 5.0, T)
     cov_X = stereo_point_covariance(X, CAL, sigma)
     _, H, _, _ = refine_pose(T, X, cov_X, uv1, CAL.K, sigma, 0)
     M = map_covariance(T, X, cov_X, uv1, CAL.K, sigma)
@@ -189,14 +188,8 @@ def test_disparity_bias_sensitivity_predicts_the_pose_shift():
     with the offset, noise-free, for offsets of 0.1 and 0.3 px."""
     rng = np.random.default_rng(3)
     n = 120
-    uv0 = np.stack([rng.uniform(10, 310, n), rng.uniform(10, 230, n)], axis=1)
-    z = rng.uniform(1.5, 6.0, n)
-    X = np.stack([(uv0[:, 0] - CAL.cx) * z / CAL.focal_px, (uv0[:, 1] - CAL.cy) * z / CAL.focal_px, z], axis=1)
     T = se3(so3_exp([0.01, 0.15, -0.01]), [0.1, -0.02, 0.4])
-    Xc = (X - T[:3, 3]) @ T[:3, :3]
-    uv1 = CAL.focal_px * Xc[:, :2] / Xc[:, 2:3] + [CAL.cx, CAL.cy]
-    f, b = CAL.focal_px, CAL.baseline_m
-    ul, v, ur = f * X[:, 0] / z + CAL.cx, f * X[:, 1] / z + CAL.cy, f * (X[:, 0] - b) / z + CAL.cx
+    X, uv1, (ul, v, ur) = synthetic_scene(rng, n, 6.0, T)
     cov_X = stereo_point_covariance(X, CAL, 0.5)
     s = disparity_bias_sensitivity(T, X, cov_X, uv1, CAL.K, 0.5, CAL.fb)
     for delta in (0.1, 0.3):
