@@ -725,7 +725,8 @@ class LocalReferenceFilter:
         ``eps = -Ad_T n`` for a delta error ``n`` (``(T_kf Exp(eps))^-1 T_cur = T Exp(-Ad_{T^-1}
         eps)``), independent of the rest of the state; in the clone's error state (``dtheta``
         left, ``dp`` additive, local frame) that is ``blockdiag(R_kf, R_kf)``. Every later delta
-        against the keyframe then sees the same map error instead of a new one (thesis 4.1.1
+        against the keyframe then sees the same map error instead of a new one (it stays on the
+        clone even when the gate rejects that first delta: the error is the keyframe's) (thesis 4.1.1
         fuses each delta as independent; consecutive deltas against one keyframe err alike,
         docs/slam.md)."""
         T = np.array(T_kf_cur, dtype=float)

@@ -261,15 +261,15 @@ class LocalEstimator:
                 X_cur = self._T_body_cam[result.frame_id]
                 T_b, cov_b = delta_in_body_frame(result.T_kf_cur, result.cov, self._T_body_cam[kf], X_cur)
                 cov_b = 0.5 * (cov_b + cov_b.T)
+                Ad = adjoint(X_cur)  # camera tangent -> body tangent (delta_in_body_frame)
                 map_b = None
                 if self.params.keyframe_map_error and result.map_cov is not None:  # the keyframe's share, onto its clone
-                    Ad = adjoint(X_cur)
                     map_b = Ad @ result.map_cov @ Ad.T
                     map_b = 0.5 * (map_b + map_b.T)
                     lam, V = np.linalg.eigh(cov_b - map_b)  # the pixel noise's share: positive definite, up to rounding
                     cov_b = (V * np.maximum(lam, 1e-9 * lam[-1])) @ V.T
                 J = extrinsic_sensitivity(result.T_kf_cur, X_cur)
-                s = None if result.disparity_sensitivity is None else adjoint(X_cur) @ result.disparity_sensitivity
+                s = None if result.disparity_sensitivity is None else Ad @ result.disparity_sensitivity
                 applied = self.filter.update_relative_pose(
                     kf, result.frame_id, T_b, cov_b, extrinsic_jacobian=J, disparity_sensitivity=s, keyframe_map_cov=map_b
                 )
