@@ -51,6 +51,7 @@ import math
 from dataclasses import dataclass
 from enum import StrEnum
 
+import numba
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
@@ -206,6 +207,25 @@ def _prepare(
 # --------------------------------------------------------------------------- negative edges
 
 
+@numba.njit(cache=True, nogil=True)
+def _previous_valid(depth):
+    """Top to bottom in every column (thesis 5.1.1): the row of the previous finite pixel above
+    each pixel (-1: none) and its depth (NaN: none)."""
+    h, w = depth.shape
+    prev = np.empty((h, w), np.int32)
+    z_prev = np.empty((h, w), depth.dtype)
+    for c in range(w):
+        last_row = -1
+        last_z = np.nan
+        for r in range(h):
+            prev[r, c] = last_row
+            z_prev[r, c] = last_z
+            if np.isfinite(depth[r, c]):
+                last_row = r
+                last_z = depth[r, c]
+    return prev, z_prev
+
+
 def _negative_edges(
     depth: np.ndarray, pts: np.ndarray, near_ok: np.ndarray, camera: np.ndarray, calibration: StereoCalibration, params: ObstacleParams
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -213,14 +233,7 @@ def _negative_edges(
     and the camera centre in that frame; only pixels in ``near_ok`` can be the near side."""
     h, w = depth.shape
     valid = np.isfinite(depth)
-    # top to bottom, all columns at once (thesis 5.1.1): the previous valid pixel above, its row and depth
-    prev = np.empty((h, w), dtype=np.int32)
-    z_prev = np.empty((h, w), dtype=depth.dtype)
-    last_row, last_z = np.full(w, -1, dtype=np.int32), np.full(w, np.nan, dtype=depth.dtype)
-    for r in range(h):
-        prev[r], z_prev[r] = last_row, last_z
-        np.copyto(last_row, r, where=valid[r])
-        np.copyto(last_z, depth[r], where=valid[r])
+    prev, z_prev = _previous_valid(depth)
     with np.errstate(invalid="ignore"):
         jump = valid & (np.abs(depth - z_prev) >= params.edge_jump_m)  # NaN where no valid pixel above
     v, c = np.nonzero(jump)

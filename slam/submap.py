@@ -1,7 +1,7 @@
 """Submaps of one robot: a point cloud with obstacle flags and a log-odds voxel grid, partitioning, exchange format
 (thesis 5.1.2, 5.1.3, 5.2.1).
 
-Pure module: numpy, on top of ``slam.stereo`` (back-projection, far cut of eq. 5.2c) and ``slam.voxels``
+Pure module: numpy (numba for the per-voxel sums), on top of ``slam.stereo`` (back-projection, far cut of eq. 5.2c) and ``slam.voxels``
 (the voxel grid, eq. 5.5-5.9). Depth images with the filter's camera poses in, finished submaps out.
 
 A submap (5.1.2) is a gravity-aligned origin that coincides with one local frame of the reference filter
@@ -56,6 +56,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from functools import cached_property
 
+import numba
 import numpy as np
 
 from slam.stereo import StereoCalibration, cut_far_points, depth_to_points
@@ -137,21 +138,27 @@ class VoxelSums:
 
     @classmethod
     def _reduce(cls, resolution, keys, xyz, count, obstacle, intensity, tag, classified) -> VoxelSums:
-        """Sum rows with equal keys; the first row of each key gives its tag."""
-        unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-        m = len(unique)
-
-        def add(w):
-            return np.bincount(inverse, weights=w, minlength=m)
-
-        sums = np.stack([add(xyz[:, 0]), add(xyz[:, 1]), add(xyz[:, 2])], axis=1) if m else np.empty((0, 3))
-        return cls(
-            resolution, unique, sums, add(count).astype(np.int64), add(obstacle) > 0, add(intensity), tag[first].astype(np.int64), add(classified) > 0
+        """Sum rows with equal keys in input order; the first row of each key gives its tag."""
+        order = np.argsort(keys, kind="stable")
+        fields = _segment_sums(
+            keys,
+            order,
+            np.ascontiguousarray(xyz, dtype=np.float64).reshape(-1, 3),
+            np.asarray(count, np.int64),
+            np.asarray(obstacle, np.bool_),
+            np.asarray(intensity, np.float64),
+            np.asarray(tag, np.int64),
+            np.asarray(classified, np.bool_),
         )
+        return cls(resolution, *fields)
 
     def merged(self, other: VoxelSums) -> VoxelSums:
-        """The sums of both point sets: exactly ``of_points`` of their union (up to float rounding)."""
-        return VoxelSums.union([self, other])
+        """The sums of both point sets: exactly ``of_points`` of their union (the same float
+        sums, ``self`` first), in one pass over the two sorted key lists."""
+        if self.resolution != other.resolution:
+            raise SubmapException(f"resolutions differ: {self.resolution} and {other.resolution}")
+        fields = ("keys", "xyz", "count", "obstacle", "intensity", "tag", "classified")
+        return VoxelSums(self.resolution, *_merge_sums(*(getattr(self, f) for f in fields), *(getattr(other, f) for f in fields)))
 
     @staticmethod
     def union(parts: list[VoxelSums]) -> VoxelSums:
@@ -173,6 +180,92 @@ class VoxelSums:
     def centroids(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One point per voxel in key order: (centroids (n, 3) float64, obstacle (n,) bool, mean intensity (n,) float64)."""
         return self.xyz / self.count[:, None], self.obstacle.copy(), self.intensity / self.count
+
+
+@numba.njit(cache=True, nogil=True)
+def _segment_sums(keys, order, xyz, count, obstacle, intensity, tag, classified):
+    """Per-key sums of rows visited in ``order`` (a stable sort of ``keys``): what
+    ``np.unique`` with one ``np.bincount`` per field gives, the same float additions in the
+    same order, in one pass."""
+    n = len(order)
+    m = 0
+    for i in range(n):
+        if i == 0 or keys[order[i]] != keys[order[i - 1]]:
+            m += 1
+    out_keys = np.empty(m, np.int64)
+    out_xyz = np.zeros((m, 3))
+    out_count = np.zeros(m, np.int64)
+    out_obstacle = np.zeros(m, np.bool_)
+    out_intensity = np.zeros(m)
+    out_tag = np.empty(m, np.int64)
+    out_classified = np.zeros(m, np.bool_)
+    j = -1
+    for i in range(n):
+        r = order[i]
+        if i == 0 or keys[r] != keys[order[i - 1]]:
+            j += 1
+            out_keys[j] = keys[r]
+            out_tag[j] = tag[r]
+        out_xyz[j, 0] += xyz[r, 0]
+        out_xyz[j, 1] += xyz[r, 1]
+        out_xyz[j, 2] += xyz[r, 2]
+        out_count[j] += count[r]
+        out_obstacle[j] |= obstacle[r]
+        out_intensity[j] += intensity[r]
+        out_classified[j] |= classified[r]
+    return out_keys, out_xyz, out_count, out_obstacle, out_intensity, out_tag, out_classified
+
+
+@numba.njit(cache=True, nogil=True)
+def _merge_sums(ka, xa, ca, oa, ia, ta, cla, kb, xb, cb, ob, ib, tb, clb):
+    """Two reduced sums (sorted unique keys) merged: rows of equal keys added, ``a``'s tag kept."""
+    na, nb = len(ka), len(kb)
+    m = na + nb
+    i = j = 0
+    while i < na and j < nb:
+        if ka[i] == kb[j]:
+            m -= 1
+            i += 1
+            j += 1
+        elif ka[i] < kb[j]:
+            i += 1
+        else:
+            j += 1
+    keys = np.empty(m, np.int64)
+    xyz = np.empty((m, 3))
+    count = np.empty(m, np.int64)
+    obstacle = np.empty(m, np.bool_)
+    intensity = np.empty(m)
+    tag = np.empty(m, np.int64)
+    classified = np.empty(m, np.bool_)
+    i = j = 0
+    for k in range(m):
+        take_a = j >= nb or (i < na and ka[i] <= kb[j])
+        take_b = i >= na or (j < nb and kb[j] <= ka[i])
+        if take_a and take_b:
+            keys[k] = ka[i]
+            for d in range(3):
+                xyz[k, d] = xa[i, d] + xb[j, d]
+            count[k] = ca[i] + cb[j]
+            obstacle[k] = oa[i] or ob[j]
+            intensity[k] = ia[i] + ib[j]
+            tag[k] = ta[i]
+            classified[k] = cla[i] or clb[j]
+            i += 1
+            j += 1
+        elif take_a:
+            keys[k] = ka[i]
+            for d in range(3):
+                xyz[k, d] = xa[i, d]
+            count[k], obstacle[k], intensity[k], tag[k], classified[k] = ca[i], oa[i], ia[i], ta[i], cla[i]
+            i += 1
+        else:
+            keys[k] = kb[j]
+            for d in range(3):
+                xyz[k, d] = xb[j, d]
+            count[k], obstacle[k], intensity[k], tag[k], classified[k] = cb[j], ob[j], ib[j], tb[j], clb[j]
+            j += 1
+    return keys, xyz, count, obstacle, intensity, tag, classified
 
 
 def voxel_filter(points: np.ndarray, obstacle: np.ndarray, intensity: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -267,6 +267,32 @@ def _free_keys(o: np.ndarray, e: np.ndarray, i0: np.ndarray, i1: np.ndarray, hit
     return np.setdiff1d(np.unique(np.concatenate(free)), hits, assume_unique=True)
 
 
+@numba.njit(cache=True, nogil=True)
+def _merge_add(keys, values, new_keys, deltas, lo, hi):
+    """Stored sorted ``keys`` and float32 ``values`` with ``deltas`` added at the sorted unique
+    ``new_keys`` (new voxels start at 0), clamped to ``[lo, hi]``; voxels at exactly 0 dropped."""
+    n, m = len(keys), len(new_keys)
+    out_keys = np.empty(n + m, np.int64)
+    out_values = np.empty(n + m, np.float32)
+    i = j = k = 0
+    while i < n or j < m:
+        if j >= m or (i < n and keys[i] < new_keys[j]):
+            key, v = keys[i], values[i]
+            i += 1
+        elif i >= n or new_keys[j] < keys[i]:
+            key, v = new_keys[j], min(max(deltas[j], lo), hi)
+            j += 1
+        else:
+            key, v = keys[i], min(max(values[i] + deltas[j], lo), hi)
+            i += 1
+            j += 1
+        if v != 0:
+            out_keys[k] = key
+            out_values[k] = v
+            k += 1
+    return out_keys[:k].copy(), out_values[:k].copy()
+
+
 # --------------------------------------------------------------------------- the grid
 
 
@@ -317,17 +343,7 @@ class VoxelGrid:
 
     def _add(self, keys: np.ndarray, deltas: np.ndarray) -> None:
         """Add float32 ``deltas`` at sorted unique ``keys`` and clamp (eq. 5.7, 5.9); drop voxels that end at exactly 0."""
-        idx = np.searchsorted(self._keys, keys)
-        found = idx < len(self._keys)
-        found[found] = self._keys[idx[found]] == keys[found]
-        values = self._values
-        values[idx[found]] = np.clip(values[idx[found]] + deltas[found], L_MIN, L_MAX)
-        new = ~found
-        self._keys = np.insert(self._keys, idx[new], keys[new])
-        self._values = np.insert(values, idx[new], np.clip(deltas[new], L_MIN, L_MAX))
-        zero = self._values == 0
-        if zero.any():
-            self._keys, self._values = self._keys[~zero], self._values[~zero]
+        self._keys, self._values = _merge_add(self._keys, self._values, keys, np.asarray(deltas, np.float32), np.float32(L_MIN), np.float32(L_MAX))
 
     def integrate(self, points_world: np.ndarray, origin_world: np.ndarray, max_range: float | None = None, discretize: bool = False) -> None:
         """Integrate the end points of ONE depth image seen from ``origin_world`` (thesis 5.1.2, eq. 5.8, 5.9).
@@ -362,10 +378,9 @@ class VoxelGrid:
         _check_index_range(np.concatenate([i0[None], i1]), "origin_world or points_world")
         hits = np.unique(_pack(i1[hit]))
         free_keys = _free_keys(o, e, i0, i1, hits) if len(e) else np.empty(0, np.int64)
-        keys = np.concatenate([free_keys, hits])
-        deltas = np.concatenate([np.full(len(free_keys), L_MISS, np.float32), np.full(len(hits), L_HIT, np.float32)])
-        order = np.argsort(keys)
-        self._add(keys[order], deltas[order])
+        # free and hit voxels are disjoint: one update each
+        self._add(free_keys, np.full(len(free_keys), L_MISS, np.float32))
+        self._add(hits, np.full(len(hits), L_HIT, np.float32))
 
     # ----------------------------------------------------------------------- queries
 

@@ -130,6 +130,40 @@ def test_merged_sums_equal_one_filter_over_the_union():
         np.testing.assert_allclose(x, y, atol=1e-12)
 
 
+def test_merged_sums_are_each_voxels_sums_in_input_order_with_its_first_tag():
+    """The numba reduction and merge against a plain per-voxel reduction in Python: the same
+    float additions in the same order (bit for bit), the first contributor's tag, any flag."""
+    rng = np.random.default_rng(3)
+    parts = [(rng.uniform(-0.3, 0.3, (n, 3)), rng.random(n) < 0.2, rng.integers(0, 256, n), rng.random(n) < 0.5) for n in (700, 500, 600)]
+    sums = [VoxelSums.of_points(p, o, i, 0.1, tag=k + 1, classified=c) for k, (p, o, i, c) in enumerate(parts)]
+    merged = sums[0].merged(sums[1]).merged(sums[2])
+    want: dict[tuple, list] = {}
+    for k, (p, o, i, c) in enumerate(parts):
+        per_part: dict[tuple, list] = {}
+        for x, ob, it, cl in zip(p, o, i, c):
+            cell = tuple(np.floor(x / 0.1).astype(int))
+            s = per_part.setdefault(cell, [0.0, 0.0, 0.0, 0, False, 0.0, k + 1, False])
+            s[0], s[1], s[2] = s[0] + x[0], s[1] + x[1], s[2] + x[2]
+            s[3], s[4], s[5], s[7] = s[3] + 1, s[4] or bool(ob), s[5] + float(it), s[7] or bool(cl)
+        for cell, s in per_part.items():  # a part's sums are added to the earlier parts' whole
+            if cell in want:
+                w = want[cell]
+                w[:6] = [w[0] + s[0], w[1] + s[1], w[2] + s[2], w[3] + s[3], w[4] or s[4], w[5] + s[5]]
+                w[7] = w[7] or s[7]
+            else:
+                want[cell] = s
+    cells = sorted(want)  # the packed keys' order: x, then y, then z
+    assert [tuple(c) for c in np.floor(merged.centroids()[0] / 0.1).astype(int)] == cells
+    rows = [want[c] for c in cells]
+    np.testing.assert_array_equal(merged.xyz, [r[:3] for r in rows])
+    for k, name in enumerate(("count", "obstacle", "intensity", "tag", "classified"), start=3):
+        np.testing.assert_array_equal(getattr(merged, name), [r[k] for r in rows])
+    assert set(merged.tag) == {1, 2, 3} and np.all(np.diff(merged.keys) > 0)
+    union = VoxelSums.union(sums)  # one reduction over all parts: the same sums
+    for name in ("keys", "xyz", "count", "obstacle", "intensity", "tag", "classified"):
+        np.testing.assert_array_equal(getattr(union, name), getattr(merged, name))
+
+
 def test_voxel_filter_rejects_bad_input():
     with pytest.raises(SubmapException, match="shape"):
         voxel_filter(np.zeros((3, 2)), np.zeros(3, bool), np.zeros(3), 0.05)
