@@ -284,6 +284,14 @@ class Agent:
             detector = self._detectors[camera] = MarkerDetector(K, {m.tag_id: m.size_m for m in self.markers.values() if m.robot != self.name})
         return detector.detect(image)
 
+    def _latest_pose(self) -> PoseEstimate | None:
+        """The filter's current estimate (beyond the pose buffer's last entry), None before it starts."""
+        est = self.estimator
+        if not est.initialised:
+            return None
+        f = est.filter
+        return PoseEstimate(self.name, f.t, f.frame_index, f.pose(), f.pose_covariance())
+
     def detections_from(self, t: float, found: list[MarkerDetection], camera: str, T_body_cam: np.ndarray) -> list[Outgoing]:
         """The detections to use of the markers ``found`` in an image of ``camera`` captured
         at ``t`` (:meth:`find_markers`): at most one per target and ``detection_interval_s``,
@@ -304,7 +312,7 @@ class Agent:
         for target, (det, marker) in sorted(best.items()):
             if t - self._last_detection.get(target, -math.inf) < self.params.detection_interval_s:
                 continue
-            own = self.buffer.at(t)
+            own = self.buffer.at(t, self._latest_pose())
             if own is None:
                 self.stats.detections_rejected["no own pose"] += 1
                 continue
@@ -427,7 +435,7 @@ class Agent:
         self.dirty = True
         if body.target_robot != self.name or (self.name, pose.t) in self._registered:
             return []
-        mine = self.buffer.at(pose.t)
+        mine = self.buffer.at(pose.t, self._latest_pose())
         if mine is None:
             self.stats.unanswerable += 1
             return []

@@ -48,15 +48,23 @@ class PoseBuffer:
             self._t.popleft()
             self._entries.popleft()
 
-    def at(self, t: float) -> PoseEstimate | None:
-        """The estimate at ``t``, or None outside the buffered span."""
+    def at(self, t: float, latest: PoseEstimate | None = None) -> PoseEstimate | None:
+        """The estimate at ``t``, or None outside the buffered span. ``latest``, the filter's
+        current estimate, extends the span to its time: an image captured since the last
+        entry (at most one period ago) is interpolated between that entry and ``latest``."""
+        if latest is not None and self._t and self._t[-1] + 1e-9 < t <= latest.t + 1e-9:
+            return self._between(self._entries[-1], latest, t)
         if not self._t or t < self._t[0] - 1e-9 or t > self._t[-1] + 1e-9:
             return None
         i = bisect.bisect_left(self._t, t - 1e-9)
         after = self._entries[i]
         if abs(after.t - t) <= 1e-9 or i == 0:
             return PoseEstimate(self.robot, t, after.frame_index, after.T_frame_body, after.cov)
-        before = self._entries[i - 1]
+        return self._between(self._entries[i - 1], after, t)
+
+    def _between(self, before: PoseEstimate, after: PoseEstimate, t: float) -> PoseEstimate:
+        """Linear interpolation on SE(3) at ``before.t < t <= after.t`` within one local frame,
+        else the nearer estimate."""
         if before.frame_index != after.frame_index:  # a frame switch in between: no common frame
             near = before if t - before.t <= after.t - t else after
             return PoseEstimate(self.robot, t, near.frame_index, near.T_frame_body, near.cov)

@@ -100,6 +100,14 @@ def test_pose_buffer_interpolates_within_a_frame_and_never_across_a_switch():
     near = buf.at(0.97)  # between 0.95 (frame 0) and 1.0 (frame 1): the nearer one, no blending
     assert near.frame_index == 0 and near.T_frame_body[0, 3] == pytest.approx(0.3 * 0.95)
     assert buf.at(-0.1) is None and buf.at(2.1) is None
+    # an image captured after the last entry (2.0 s): between it and the filter's current estimate
+    current = PoseEstimate("lru1", 2.04, 1, se3(so3_exp([0, 0, 0.52]), [0.312, 0, 0]), np.eye(6) * 3.04)
+    late = buf.at(2.02, latest=current)
+    np.testing.assert_allclose(late.T_frame_body[:3, 3], [0.306, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(late.T_frame_body[:3, :3], so3_exp([0, 0, 0.51]), atol=1e-12)
+    assert late.t == 2.02 and late.frame_index == 1
+    assert buf.at(2.05, latest=current) is None  # after the current estimate: not known yet
+    assert buf.at(0.52, latest=current).T_frame_body[0, 3] == pytest.approx(0.3 * 0.52)
     for k in range(41, 400):
         buf.add(0.05 * k, 1, np.eye(4), np.eye(6))
     assert buf.at(1.0) is None  # beyond the horizon
