@@ -50,7 +50,7 @@ from slam.matcher import MatcherParams
 from slam.navigation.exploration import ExplorationParams, Goal, RevisitPlace
 from slam.navigation.explorer import Explorer
 from slam.navigation.observation import peer_to_observe
-from slam.obstacles import ObstacleParams
+from slam.obstacles import Classification, ObstacleParams
 from slam.rest import RestParams
 from slam.stereo import StereoCalibration, depth_error
 from slam.submap import SubmapParams
@@ -365,16 +365,21 @@ class OnboardStack:
         floor = self.robot.min_mapping_height_m
         if floor is not None and (est.T_first_current @ est.in_frame(frame.T_local_body, frame.frame_index))[2, 3] < floor:
             return  # e.g. a hexacopter on the ground or taking off: its downward stereo sees the ground closer than it can match
-        self.lane.submit("mapping", work=lambda: self._map(frame, *images), on_done=lambda _, t_done: self._check_partition(t_done))
+        self.lane.submit("mapping", work=lambda: self._map(frame, *images), on_done=lambda c, t_done: self._mapped(frame, images[0], c, t_done))
 
-    def _map(self, frame: FramePose, depth: np.ndarray, left: np.ndarray) -> None:
+    def _map(self, frame: FramePose, depth: np.ndarray, left: np.ndarray) -> Classification:
         """Classify and integrate one depth image along the filter's pose of its frame,
         expressed in the current local frame (a switch may have happened since)."""
         est = self.estimator
         T_local_body = est.in_frame(frame.T_local_body, frame.frame_index)
-        classification = self.mapper.integrate(frame.t, depth, left, T_local_body, frame.T_body_cam, est.T_first_current)
+        return self.mapper.integrate(frame.t, depth, left, T_local_body, frame.T_body_cam, est.T_first_current)
+
+    def _mapped(self, frame: FramePose, depth: np.ndarray, classification: Classification, now: float) -> None:
+        """After a mapping job: the evaluation's look at the image (outside the job, whose wall
+        time is the robot's compute under ``compute.model: measured``), then the partition check."""
         if self.on_mapped is not None:
             self.on_mapped(frame.frame_id, depth, classification)
+        self._check_partition(now)
 
     def _check_partition(self, now: float) -> None:
         est = self.estimator

@@ -96,6 +96,7 @@ def bench(scenario_path: Path, out: Path, variants: list[str], duration: float |
                 "parts_s": runtime["parts_s"],
                 "image_thread_s": runtime["image_thread_s"],
                 "estimation": {robot: estimation_row(m) for robot, m in metrics["robots"].items()},
+                "jobs_s": jobs_wall_s(metrics["robots"]),
             }
         )
         rtf = runtime["real_time_factor"]
@@ -105,6 +106,15 @@ def bench(scenario_path: Path, out: Path, variants: list[str], duration: float |
         if composition is None:
             composition = composition_bench(run)
     return rows, composition
+
+
+def jobs_wall_s(robots: dict) -> dict[str, float]:
+    """The loop's wall seconds in each kind of lane job, over all robots (mean x completed)."""
+    total: dict[str, float] = {}
+    for m in robots.values():
+        for stage, s in m.get("lane", {}).get("stages", {}).items():
+            total[stage] = total.get(stage, 0.0) + s["wall_mean_s"] * s["completed"]
+    return total
 
 
 def estimation_row(robot_metrics: dict) -> dict:
@@ -170,6 +180,19 @@ def write_report(rows: list[dict], composition: dict | None, scenario: Path, out
                 f"| {r['variant']} | {robot} | {timing} | {e['distance_m']:.1f} | {e['drift_percent']:.2f} | {e['final_error_m']:.3f} "
                 f"| {e['ate_rmse_m']:.3f} | {e['nees_mean']:.1f} | {e['vo_rejected']}/{e['vo_frames']} |"
             )
+    stages = sorted({k for r in rows for k in r.get("jobs_s", {})}, key=lambda k: -max(r.get("jobs_s", {}).get(k, 0.0) for r in rows))
+    if stages:
+        lines += [
+            "",
+            "The loop's \"other\" by lane job (wall s over all robots; \"rest\": the run loop, lanes and SimPy around them):",
+            "",
+            "| variant | " + " | ".join(stages) + " | rest |",
+            "|---|" + "---|" * (len(stages) + 1),
+        ]
+        for r in rows:
+            jobs = r.get("jobs_s", {})
+            rest = r["parts_s"].get("other", 0.0) - sum(jobs.values())
+            lines.append(f"| {r['variant']} | " + " | ".join(f"{jobs.get(k, 0.0):.1f}" for k in stages) + f" | {rest:.1f} |")
     sizes = [f"{robot} {e['submap_kb_mean']:.0f} KB" for robot, e in rows[0]["estimation"].items() if e["submap_kb_mean"] is not None]
     if sizes:
         lines += ["", f"Finished submaps, mean size ({rows[0]['variant']}): " + ", ".join(sizes) + " (thesis: 700 KB)."]
