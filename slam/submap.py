@@ -183,6 +183,13 @@ class VoxelSums:
 
 
 @numba.njit(cache=True, nogil=True)
+def _zero_sums(m):
+    """Fields of ``m`` voxels' sums (``VoxelSums`` order), zero (keys and tags unset)."""
+    keys, tag = np.empty(m, np.int64), np.empty(m, np.int64)
+    return keys, np.zeros((m, 3)), np.zeros(m, np.int64), np.zeros(m, np.bool_), np.zeros(m), tag, np.zeros(m, np.bool_)
+
+
+@numba.njit(cache=True, nogil=True)
 def _segment_sums(keys, order, xyz, count, obstacle, intensity, tag, classified):
     """Per-key sums of rows visited in ``order`` (a stable sort of ``keys``): what
     ``np.unique`` with one ``np.bincount`` per field gives, the same float additions in the
@@ -192,13 +199,7 @@ def _segment_sums(keys, order, xyz, count, obstacle, intensity, tag, classified)
     for i in range(n):
         if i == 0 or keys[order[i]] != keys[order[i - 1]]:
             m += 1
-    out_keys = np.empty(m, np.int64)
-    out_xyz = np.zeros((m, 3))
-    out_count = np.zeros(m, np.int64)
-    out_obstacle = np.zeros(m, np.bool_)
-    out_intensity = np.zeros(m)
-    out_tag = np.empty(m, np.int64)
-    out_classified = np.zeros(m, np.bool_)
+    out_keys, out_xyz, out_count, out_obstacle, out_intensity, out_tag, out_classified = _zero_sums(m)
     j = -1
     for i in range(n):
         r = order[i]
@@ -231,13 +232,7 @@ def _merge_sums(ka, xa, ca, oa, ia, ta, cla, kb, xb, cb, ob, ib, tb, clb):
             i += 1
         else:
             j += 1
-    keys = np.empty(m, np.int64)
-    xyz = np.empty((m, 3))
-    count = np.empty(m, np.int64)
-    obstacle = np.empty(m, np.bool_)
-    intensity = np.empty(m)
-    tag = np.empty(m, np.int64)
-    classified = np.empty(m, np.bool_)
+    keys, xyz, count, obstacle, intensity, tag, classified = _zero_sums(m)
     i = j = 0
     for k in range(m):
         take_a = j >= nb or (i < na and ka[i] <= kb[j])
