@@ -6,7 +6,7 @@ import numpy as np
 
 from sim.evaluation.image_classification import ImageCells
 from sim.evaluation.map_quality import MapQualityParams
-from slam.obstacles import ObstacleParams
+from slam.obstacles import ObstacleParams, classified_pixels, classify_depth
 from slam.stereo import StereoCalibration, depth_to_points
 
 CAL = StereoCalibration(focal_px=300.0, cx=159.5, cy=119.5, baseline_m=0.09, width=320, height=240)
@@ -42,6 +42,12 @@ def test_pixels_that_saw_a_robot_are_left_out_wherever_stereo_placed_them():
     assert 0 < on.sum() < np.isfinite(depth).sum()  # the robot's face, not the whole view nor the sky
     assert by_truth.pixels_on_robots == on.sum()
     assert by_truth.obstacle_pixels_on_robots == (on & obstacle).sum()
+    # the classification's own mask of the pixels it read, as the run passes it, is the same
+    read = classify_depth(depth, CAL, T_WORLD_CAM, ObstacleParams()).pixel_classified
+    np.testing.assert_array_equal(read, classified_pixels(depth, CAL, ObstacleParams()))
+    given = ImageCells(CAL, ObstacleParams())
+    given.add(depth, obstacle, T_WORLD_CAM, [ROBOT], true_depth, seen=read)
+    assert given.pixels_on_robots == on.sum() and np.array_equal(np.concatenate(given._seen), np.concatenate(by_truth._seen))
     # with no robot about, the true depth changes nothing
     alone = ImageCells(CAL, ObstacleParams())
     alone.add(depth, obstacle, T_WORLD_CAM, [], true_depth)

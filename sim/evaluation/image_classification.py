@@ -76,14 +76,16 @@ class ImageCells:
         T_world_cam: np.ndarray,
         robots: list[tuple[np.ndarray, float]],
         true_depth: np.ndarray | None = None,
+        seen: np.ndarray | None = None,
     ) -> None:
         """One mapped depth image with its per-pixel obstacle flags, the true pose of its
         camera (OpenCV axes), the other robots' true xy with their body radii (their
         surroundings are not scored, :attr:`MapQualityParams.robot_margin_m` beyond) and,
         if rendered, the camera's true z-depth (inf: sky), which tells the pixels that saw
-        a robot wherever stereo placed them."""
+        a robot wherever stereo placed them. ``seen``: the pixels the classification read
+        (``slam.obstacles.Classification.pixel_classified``), else found again from ``depth``."""
         cal, p = self.calibration, self.params
-        seen = classified_pixels(depth, cal, p)
+        seen = classified_pixels(depth, cal, p) if seen is None else seen
         xy = world_xy(depth, seen, cal, T_world_cam)
         flagged = obstacle[seen]
         true_xy = None

@@ -389,7 +389,7 @@ class Run:
         )
         if onboard is not None and onboard.mapper is not None:
             runtime.image_cells = ImageCells(calibration(onboard.vo_rig), onboard.mapper.obstacle_params)
-            onboard.on_mapped = lambda frame_id, depth, c, r=runtime: self._score_image(r, frame_id, depth, c.pixel_obstacles)
+            onboard.on_mapped = lambda frame_id, depth, c, r=runtime: self._score_image(r, frame_id, depth, c.pixel_obstacles, c.pixel_classified)
         if self.dataset is not None:  # the cameras' believed transforms at t = 0 (the robots have settled)
             T_body_cam = {rig.name: self._believed_body_camera(robot, rig) for rig in robot.stereo_rigs}
             vo_rig = self.scenario.slam.vo_rig or robot.default_vo_rig
@@ -778,7 +778,7 @@ class Run:
         xpos = self.world.data.xpos
         return [(xpos[body][:2].copy(), self.robots[name].robot.body_radius_m) for name, body in self._root_body.items() if name != robot.name]
 
-    def _score_image(self, runtime: RobotRuntime, frame_id: int, depth: np.ndarray, obstacle: np.ndarray) -> None:
+    def _score_image(self, runtime: RobotRuntime, frame_id: int, depth: np.ndarray, obstacle: np.ndarray, classified: np.ndarray) -> None:
         """A mapped image's flags at its true camera pose (:mod:`sim.evaluation.image_classification`)."""
         truth = runtime.capture_truth.pop(frame_id, None)
         for stale in [k for k in runtime.capture_truth if k < frame_id]:  # frames never mapped
@@ -788,7 +788,7 @@ class Run:
             true_depth = self.images.result(pair).depth
             t = time.perf_counter()
             cells = runtime.image_cells
-            cells.add(depth, obstacle, T_world_cam, others, true_depth)
+            cells.add(depth, obstacle, T_world_cam, others, true_depth, seen=classified)
             if self.image_observer is not None:
                 name = runtime.robot.name
                 self.image_observer(MappedImage(name, frame_id, depth, obstacle, T_world_cam, others, true_depth, cells.calibration, cells.params))
