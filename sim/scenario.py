@@ -305,13 +305,7 @@ class CameraConfig(StrictModel):
 
     width: int = Field(320, ge=32, le=2048, description="image width (px)")
     height: int = Field(240, ge=32, le=2048, description="image height (px)")
-    rate_hz: float = Field(
-        5.0,
-        gt=0,
-        le=30,
-        description="stereo frame rate; must divide physics.control_rate_hz (thesis 7.1: 8 to 14.6 Hz). Robots' cameras are not in step: "
-        "robot k of n (from 0, in scenario order) first triggers k/n of a frame period after t = 0, rounded down to a control tick",
-    )
+    rate_hz: float = Field(5.0, gt=0, le=30, description="stereo frame rate; must divide physics.control_rate_hz (thesis 7.1: 8 to 14.6 Hz)")
     color: Literal["grey", "rgb"] = Field("grey", description="rendered images: grey (one channel, as the thesis's rovers, 7.1) or rgb")
     hfov_deg: float | None = Field(
         None, gt=10, lt=170, description=f"horizontal field of view (null: the preset's, {_per_preset('default_hfov_deg')})"

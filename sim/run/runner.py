@@ -175,7 +175,6 @@ class RobotRuntime:
     inertial: InertialAverager
     imu_every: int
     camera_every: int
-    camera_phase: int  # control ticks from t = 0 to the first trigger (Run._runtime)
     renderers: list[StereoRenderer]
     workers: list[int]  # the image pipeline's worker of each renderer (sim/run/pipeline.py)
     imaging: list[CameraImaging | None]  # per rig: image formation, None for ideal images
@@ -264,7 +263,7 @@ class Run:
         self._settle(robots)
         t0 = self.timers.add("setup", t0)
         self.team_markers = self._team_markers(robots)
-        self.robots = {r.name: self._runtime(r, k, len(robots)) for k, r in enumerate(robots)}
+        self.robots = {r.name: self._runtime(r) for r in robots}
         self._root_body = {r.name: self._robot_root_body(r) for r in robots}
         model = self.world.model
         materials = [model.material(k).name.rsplit("/", 1)[-1] for k in range(model.nmat)]  # robots' assets are prefixed
@@ -329,12 +328,8 @@ class Run:
         assert ticks is not None, rate_hz
         return ticks
 
-    def _runtime(self, robot: Robot, index: int, team_size: int) -> RobotRuntime:
-        """Sensors, lane and SLAM stack of robot ``index`` of ``team_size``. Its cameras trigger
-        ``index / team_size`` of a frame period after the first robot's: robots' cameras run on
-        their own clocks, not in step (and the image pipeline draws one robot's pairs at a time)."""
+    def _runtime(self, robot: Robot) -> RobotRuntime:
         cfg = robot.cfg
-        camera_every = self._every(cfg.camera.rate_hz)
         cores = cfg.computer.cores or robot.default_cores
         lane = Lane(
             self.env, robot.name, cores, cfg.computer.fpga, ComputeModel(self.scenario.compute), self.scenario.compute.max_queue, self.images.result
@@ -375,8 +370,7 @@ class Run:
             imu=imu,
             inertial=InertialAverager(self.world.model, robot.accel_sensor, robot.gyro_sensor),
             imu_every=self._every(cfg.imu.rate_hz),
-            camera_every=camera_every,
-            camera_phase=camera_every * index // team_size,
+            camera_every=self._every(cfg.camera.rate_hz),
             renderers=renderers,
             workers=[self._next_worker() for _ in renderers],
             imaging=imaging,
@@ -648,9 +642,8 @@ class Run:
                 if runtime.dataset is not None:
                     runtime.dataset.odometry(now, odom)
             t = self.timers.add("sensors", t)
-            frame, phase = divmod(tick - runtime.camera_phase, runtime.camera_every)
-            if frame >= 0 and phase == 0:
-                self._capture(runtime, frame, now)
+            if tick % runtime.camera_every == 0:
+                self._capture(runtime, tick // runtime.camera_every, now)
 
     def _capture(self, runtime: RobotRuntime, frame: int, now: float) -> None:
         """A stereo trigger: each rig's scene is snapshot now; drawing, exposure, marker search
