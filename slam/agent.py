@@ -287,7 +287,7 @@ class Agent:
     def _latest_pose(self) -> PoseEstimate | None:
         """The filter's current estimate (beyond the pose buffer's last entry), None before it starts."""
         est = self.estimator
-        if not est.initialised:
+        if est is None or not est.initialised:
             return None
         f = est.filter
         return PoseEstimate(self.name, f.t, f.frame_index, f.pose(), f.pose_covariance())
