@@ -310,7 +310,7 @@ def refine_pose(
 
 
 def disparity_bias_sensitivity(
-    T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarray, K: np.ndarray, pixel_noise_px: float, fb: float
+    T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarray, K: np.ndarray, pixel_noise_px: float, fb: float, linearised: tuple | None = None
 ) -> np.ndarray:
     """How the refined pose moves (6-vector, the tangent of :func:`refine_pose`) per pixel of
     a disparity offset common to all keyframe points: a residual yaw of the rectified
@@ -320,15 +320,17 @@ def disparity_bias_sensitivity(
     Gauss-Newton step of the perturbed problem). ``σ_δ^2 s s^T`` is then the delta's
     covariance from the calibration's uncertainty; the offset is the same in every delta,
     so the filter holds it as a consider parameter in Schmidt's sense (the estimate does
-    not solve for it)."""
-    _, J, W, JpRt = _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
+    not solve for it). ``linearised``: :func:`_reprojection` at ``T``, when the caller has it."""
+    _, J, W, JpRt = linearised or _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
     H = J.reshape(-1, 6).T @ (W @ J).reshape(-1, 6)
     dr = np.einsum("nij,nj->ni", JpRt, X * (X[:, 2] / fb)[:, None])
     g = np.einsum("nki,nkl,nl->i", J, W, dr)
     return np.linalg.solve(H, g)
 
 
-def map_covariance(T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarray, K: np.ndarray, pixel_noise_px: float) -> np.ndarray:
+def map_covariance(
+    T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarray, K: np.ndarray, pixel_noise_px: float, linearised: tuple | None = None
+) -> np.ndarray:
     """The share of the refined pose's covariance ``H^-1`` (:func:`refine_pose`) that comes
     from the keyframe's 3D points (their stereo covariance ``Σ_X``, eq. 5.2) rather than from
     the pixel noise of the current image: with ``C_i = Δp^2 I + P_i`` (``P_i`` the projected
@@ -337,8 +339,9 @@ def map_covariance(T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarr
     returned here (6x6, the tangent of :func:`refine_pose`). The points' errors are those of
     the keyframe, the same in every delta measured against it, so that share does not
     average out over the deltas of one keyframe (our addition: thesis 4.1.1 fuses each
-    delta with its whole covariance, as if the deltas were independent)."""
-    _, J, W, _ = _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
+    delta with its whole covariance, as if the deltas were independent). ``linearised``: as
+    for :func:`disparity_bias_sensitivity`."""
+    _, J, W, _ = linearised or _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
     WJ = W @ J
     H = J.reshape(-1, 6).T @ WJ.reshape(-1, 6)
     Hinv = np.linalg.inv(H)
@@ -597,8 +600,10 @@ class StereoVO:
         T, H, _, _ = refine_pose(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, p.refine_iterations - half)
         try:
             cov = np.linalg.inv(H)
-            s = disparity_bias_sensitivity(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px, c.fb)
-            map_cov = map_covariance(T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px)
+            inliers = (T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px)
+            lin = _reprojection(*inliers[:5], p.pixel_noise_px**2)  # one linearisation at T for both
+            s = disparity_bias_sensitivity(*inliers, c.fb, linearised=lin)
+            map_cov = map_covariance(*inliers, linearised=lin)
         except np.linalg.LinAlgError:
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
         std = np.sqrt(np.diag(cov))
