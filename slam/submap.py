@@ -35,8 +35,9 @@ differ from raw rays by under 5 cm at their ends (with other resolutions, by und
 Measured (2-core machine, 2026-11-22) on one 320x240 image of ground and boxes from 1.3 m, tilted 25 deg
 down, far cut at 2.54 m (f b = 30.5 px m): 27,840 valid pixels, 1,326 centroids; ``VoxelGrid.integrate``
 0.10 s with a ray per pixel, 0.0032 s with the centroids (0.0034 s with its ``discretize=True``).
-``SubmapBuilder.integrate`` takes 8-12 ms per image over a 50-image, 5 m drive (``drive_submap`` in
-``tests/test_submap.py``, command there); the thesis measured 10 ms on average (8.4).
+``SubmapBuilder.integrate`` takes 7.1-7.5 ms per image over a 50-image, 5 m drive (``drive_submap`` in
+``tests/test_submap.py``, command there, second pass; 2026-12-05, the same before and after the numba
+kernels below); the thesis measured 10 ms on average (8.4).
 
 Size (thesis 8.4: 700 KB on average in LRU Experiment #2): that drive's submap has 19,692 points and
 20,020 voxels and encodes to 31.5 KB (149 KB without zlib, of which the voxel grid is 5.8 KB; measured
