@@ -185,7 +185,7 @@ class RobotRuntime:
     log: RobotLog = field(default_factory=RobotLog)
     faults: ConditionFaults | None = None  # the scenario's condition faults that hit the robot (sim/run/faults.py)
     image_cells: ImageCells | None = None  # mapped images' obstacle cells at true camera poses
-    capture_truth: dict[int, tuple] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots, true depth or None
+    capture_truth: dict[int, tuple] = field(default_factory=dict)  # VO frame -> true T_world_cam, other robots, the pair (its true depth or None)
     recent_truth: deque = field(default_factory=deque)  # (t, R, v, biases) at the latest IMU samples, for OnboardStack.record
     dataset: DatasetWriter | None = None  # output.dataset: the robot's sensor data as it comes (sim/run/dataset.py)
     unscored_depths: deque = field(default_factory=deque)  # (rig, pair, depth) of finished stereo jobs not scored yet (Run._score_depths)
