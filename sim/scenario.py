@@ -51,6 +51,7 @@ from slam.navigation.exploration import ExplorationParams
 from slam.obstacles import ObstacleParams
 from slam.rest import RestParams
 from slam.submap import SubmapParams
+from slam.vo import VoParams
 
 NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_]{0,31}$"
 
@@ -779,7 +780,14 @@ class SlamConfig(StrictModel):
     )
     vo_disparity_bias_px: NonNegFloat = slam_field(
         SlamParam(FilterParams, "disparity_bias_std"),
-        description="std of a disparity offset common to all VO points (rectification error), held by the filter as a consider parameter",
+        SlamParam(VoParams, "disparity_offset_prior_px"),
+        description="std of a disparity offset common to all VO points (rectification error), held by the filter as a consider parameter"
+        " and the prior of its online estimate",
+    )
+    vo_disparity_offset_estimation: bool = slam_field(
+        SlamParam(VoParams, "estimate_disparity_offset"),
+        description="estimate the VO rig's disparity offset while moving and take it off the VO's and the mapping's depths "
+        "(slam/stereo_offset.py; false: the calibration as given, thesis 5.1.1)",
     )
     camera_rotation_std_deg: NonNegFloat = slam_field(
         SlamParam(FilterParams, "extrinsic_rotation_std", degrees=True),

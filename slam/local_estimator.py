@@ -562,4 +562,5 @@ class LocalEstimator:
             "failures": dict(v.failures),
             "last_applied_t": v.last_applied_t,
             "time_since_last_applied_s": self.time_since_vo,
+            "disparity_offset": None if self.vo is None or self.vo.offset is None else self.vo.offset.report(),
         }

@@ -38,6 +38,11 @@ What it does per stereo pair
    active keyframe cannot be matched, the older keyframes of the history are tried
    (newest first); a good match re-activates the old keyframe, which keeps the
    estimate locally drift-free when the robot returns (Schmid et al. 2012 via 4.1.1).
+6. The rig's disparity offset (our addition, slam.stereo_offset): when a keyframe is
+   replaced, its last measurement (the widest baseline) and sparse subpixel disparities
+   of its corners (KLT along the rows, also with a dense depth) measure the offset
+   (:func:`two_view_disparity_offset`); the fused estimate is taken off the disparities
+   of every later keyframe (``StereoVO.disparity_offset``, for the caller's mapping too).
 
 Failures are reported (``VoResult.ok = False`` with a reason), never papered over with
 a pose: the local reference filter then carries on with IMU and wheel odometry (4.1.1).
@@ -67,7 +72,8 @@ import cv2
 import numpy as np
 
 from slam.lie import adjoint
-from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, max_depth_for_error, triangulate
+from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, max_depth_for_error, remove_disparity_offset, triangulate
+from slam.stereo_offset import DisparityOffsetEstimate
 
 
 class VoException(Exception):
@@ -105,6 +111,7 @@ class VoParams:
     min_depth_m: float = 0.3
     max_depth_jump: float = 0.05  # relative depth range in the 3x3 neighbourhood (dense depth): edges dropped
     stereo_max_row_error_px: float = 1.0  # sparse stereo: rows of a rectified match must agree
+    stereo_max_disparity_gap_px: float = 1.0  # sparse stereo beside a dense depth: at most this far from its disparity
     # tracking
     klt_window_px: int = 15
     klt_levels: int = 3
@@ -127,12 +134,18 @@ class VoParams:
     keyframe_max_rotation_deg: float = 10.0
     # noise (thesis 5.1.1: 0.5 px)
     pixel_noise_px: float = DEFAULT_PIXEL_ERROR
+    # the rig's disparity offset (slam.stereo_offset): estimated and taken off the keyframes' points
+    estimate_disparity_offset: bool = True
+    disparity_offset_prior_px: float = 0.25  # the calibration's uncertainty of the offset (std; 0: none, not estimated)
+    disparity_offset_gate_sigma: float = 3.0
 
     def __post_init__(self):
         positive = ("max_features", "grid_cols", "grid_rows", "min_features", "max_point_error_m", "klt_window_px",
                     "klt_fb_max_px", "ransac_threshold_px", "ransac_iterations", "refine_iterations",
-                    "inlier_chi2", "min_inliers", "n_keyframes", "pixel_noise_px")
+                    "inlier_chi2", "min_inliers", "n_keyframes", "pixel_noise_px", "disparity_offset_gate_sigma")
         bad = [f"{k}={getattr(self, k)}" for k in positive if not getattr(self, k) > 0]
+        if not self.disparity_offset_prior_px >= 0:
+            bad.append(f"disparity_offset_prior_px={self.disparity_offset_prior_px} (must be >= 0)")
         if bad:
             raise VoException(f"VoParams must be positive: {', '.join(bad)}")
         if self.min_inliers < 4:
@@ -159,6 +172,7 @@ class VoResult:
     matches: int = 0  # tracked features before PnP (diagnostics)
     disparity_sensitivity: np.ndarray | None = None  # (6,) how T_kf_cur moves per pixel of disparity offset (:func:`disparity_bias_sensitivity`)
     map_cov: np.ndarray | None = None  # 6x6 share of ``cov`` from the keyframe's points, alike in all its deltas (:func:`map_covariance`)
+    disparity_offset: float = 0.0  # the rig's estimated disparity offset after this frame (px; 0 when not estimated)
 
 
 @dataclass
@@ -170,6 +184,7 @@ class _Keyframe:
     X: np.ndarray  # (n, 3) points in the keyframe's left-camera frame
     cov_X: np.ndarray  # (n, 3, 3) their stereo covariance
     T_odo: np.ndarray  # 4x4 pose in the VO's own chained frame (used for predictions only)
+    disparity: np.ndarray | None = None  # (n,) its corners' disparities by sparse stereo (px), NaN where none
 
 
 @dataclass
@@ -182,6 +197,7 @@ class _Measurement:
     matches: int = 0
     disparity_sensitivity: np.ndarray | None = None
     map_cov: np.ndarray | None = None
+    inlier_ids: np.ndarray | None = None  # the inliers' indices among the keyframe's points
 
 
 # --------------------------------------------------------------------------- geometry helpers
@@ -328,6 +344,92 @@ def disparity_bias_sensitivity(
     return np.linalg.solve(H, g)
 
 
+def two_view_disparity_offset(
+    T: np.ndarray, uv0: np.ndarray, disparity: np.ndarray, uv1: np.ndarray, calib: StereoCalibration,
+    pixel_noise_px: float, iterations: int = 5, gate: float = 4.0,
+) -> tuple[float, float] | None:
+    """The rig's disparity offset ``δ`` (px: measured disparities exceed the true ones by it)
+    from one keyframe and one later image of the same rig, with its information (1 / px^2);
+    None when the pair holds none (no translation, too few points). Our addition
+    (slam.stereo_offset).
+
+    A two-view bundle adjustment: unknowns the pose ``T`` of the later camera in the
+    keyframe (right perturbation, as :func:`refine_pose`), ``δ`` and each point's true
+    disparity ``d_i`` on its keyframe ray through ``uv0_i``; measurements the keyframe's
+    disparities ``disparity_i = d_i + δ`` (noise ``sqrt 2 Δp``, eq. 5.2's model) and the
+    later image's pixels ``uv1_i`` (``Δp``). Gauss-Newton with the points eliminated by
+    their Schur complement (one unknown each), the reduced 7x7 system's inverse giving
+    ``δ``'s information. After two iterations, points whose residual exceeds ``gate``
+    standard deviations are dropped. Solving for the disparities matters: the offset
+    estimated instead from the reprojection linearised at the measured points (the
+    derivative of :func:`disparity_bias_sensitivity`, the pose eliminated) was biased by
+    about ``-0.9 σ_d^2`` px (``σ_d`` the disparity noise; synthetic points, while this was
+    written), -0.1 to -0.2 px on realistic Etna images, the size of the offsets themselves;
+    this one is not (tests/test_vo.py)."""
+    f, fb = calib.focal_px, calib.fb
+    ray = np.stack([(uv0[:, 0] - calib.cx) / f, (uv0[:, 1] - calib.cy) / f, np.ones(len(uv0))], axis=1)
+    d = np.asarray(disparity, dtype=float).copy()
+    ok = np.isfinite(d) & (d > 0)
+    ray, measured, d, uv1 = ray[ok], d[ok], d[ok], np.asarray(uv1, dtype=float)[ok]
+    w_img, w_disp = 1.0 / pixel_noise_px**2, 0.5 / pixel_noise_px**2
+    T, delta = np.array(T, dtype=float), 0.0
+    S = None
+    for it in range(iterations):
+        if len(d) < 8 or np.any(d <= 0):
+            return None
+        X = ray * (fb / d)[:, None]
+        Xc = (X - T[:3, 3]) @ T[:3, :3]
+        if np.any(Xc[:, 2] <= 0):
+            return None
+        zi = 1.0 / Xc[:, 2]
+        r = uv1 - (f * Xc[:, :2] * zi[:, None] + [calib.cx, calib.cy])
+        s = measured - d - delta
+        if it == 2:  # gate once the estimate has settled
+            keep = (np.sum(r * r, axis=1) * w_img + s * s * w_disp) < gate**2
+            ray, measured, d, uv1 = ray[keep], measured[keep], d[keep], uv1[keep]
+            X, Xc, zi, r, s = X[keep], Xc[keep], zi[keep], r[keep], s[keep]
+            if len(d) < 8:
+                return None
+        Jp = np.zeros((len(d), 2, 3))
+        Jp[:, 0, 0] = Jp[:, 1, 1] = f * zi
+        Jp[:, :, 2] = -f * Xc[:, :2] * (zi**2)[:, None]
+        J = np.zeros((len(d), 2, 6))  # d(pixel)/d(xi): r_new = r - J xi, as in _reprojection
+        x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+        for k in range(2):
+            a_, b_, c_ = Jp[:, k, 0], Jp[:, k, 1], Jp[:, k, 2]
+            J[:, k, 0], J[:, k, 1], J[:, k, 2] = b_ * z - c_ * y, c_ * x - a_ * z, a_ * y - b_ * x
+        J[:, :, 3:] = -Jp
+        a = -np.einsum("nij,nj->ni", Jp @ T[:3, :3].T, X / d[:, None])  # d(pixel)/d(d_i): X = ray f b / d
+        H_cc = np.zeros((7, 7))
+        H_cc[:6, :6] = w_img * np.einsum("nki,nkj->ij", J, J)
+        H_cc[6, 6] = w_disp * len(d)
+        H_cp = np.empty((len(d), 7))
+        H_cp[:, :6] = w_img * np.einsum("nki,nk->ni", J, a)
+        H_cp[:, 6] = w_disp
+        H_pp = w_img * np.sum(a * a, axis=1) + w_disp
+        g_c = np.empty(7)
+        g_c[:6] = w_img * np.einsum("nki,nk->i", J, r)
+        g_c[6] = w_disp * s.sum()
+        g_p = w_img * np.sum(a * r, axis=1) + w_disp * s
+        S = H_cc - (H_cp / H_pp[:, None]).T @ H_cp
+        try:
+            step = np.linalg.solve(S, g_c - H_cp.T @ (g_p / H_pp))
+        except np.linalg.LinAlgError:
+            return None
+        d = d + (g_p - H_cp @ step) / H_pp
+        R = T[:3, :3]
+        T[:3, 3] = T[:3, 3] + R @ step[3:6]
+        T[:3, :3] = R @ cv2.Rodrigues(step[:3].reshape(3, 1))[0]
+        delta += float(step[6])
+    try:
+        info = 1.0 / float(np.linalg.inv(S)[6, 6])
+    except np.linalg.LinAlgError:
+        return None
+    if not (math.isfinite(delta) and math.isfinite(info) and info > 1e-6 and np.linalg.cond(S) < 1e12):
+        return None
+    return delta, info
+
+
 def map_covariance(
     T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarray, K: np.ndarray, pixel_noise_px: float, linearised: tuple | None = None
 ) -> np.ndarray:
@@ -376,6 +478,14 @@ class StereoVO:
         self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03)
         self._max_depth = min(max_depth_for_error(calib, params.max_point_error_m, params.pixel_noise_px),
                               calib.fb / 0.5)  # at least half a pixel of disparity
+        estimate = params.estimate_disparity_offset and params.disparity_offset_prior_px > 0  # a zero prior: exact calibration
+        self.offset = DisparityOffsetEstimate(params.disparity_offset_prior_px, params.disparity_offset_gate_sigma) if estimate else None
+
+    @property
+    def disparity_offset(self) -> float:
+        """The rig's disparity offset the VO takes off its keyframes' points (px; 0 unless
+        estimated, ``VoParams.estimate_disparity_offset``): for the caller's other uses of the depth."""
+        return 0.0 if self.offset is None else self.offset.value
 
     # ------------------------------------------------------------------ public
 
@@ -418,6 +528,7 @@ class StereoVO:
         if meas is not None and meas.ok:
             T_odo_cur = ref.T_odo @ meas.T
             if not self._keeps(ref, meas):
+                self._measure_offset(ref, meas)  # its widest baseline: the keyframe's offset measurement
                 new_kf = self._make_keyframe(frame_id, t, grey_l, right, depth, T_odo_cur, keep=ref) is None
             elif ref is not self.active:
                 self.active = ref  # a revisit: back to the older keyframe
@@ -440,7 +551,7 @@ class StereoVO:
             return VoResult(t, frame_id, False, reason, None, None, None, 0, np.zeros((0, 2)), new_kf, history,
                             0 if meas is None else meas.matches)
         return VoResult(t, frame_id, True, None, ref.frame_id, meas.T, meas.cov, len(meas.inlier_uv), meas.inlier_uv,
-                        new_kf, history, meas.matches, meas.disparity_sensitivity, meas.map_cov)
+                        new_kf, history, meas.matches, meas.disparity_sensitivity, meas.map_cov, self.disparity_offset)
 
     # ------------------------------------------------------------------ keyframes
 
@@ -502,16 +613,22 @@ class StereoVO:
             ok = np.all(np.isfinite(patch), axis=1)
             ok &= (np.ptp(np.where(ok[:, None], patch, 0), axis=1) <= p.max_depth_jump * z)
         c = self.calib
+        z = remove_disparity_offset(z, c, self.disparity_offset)
         X = np.stack([(uv[:, 0] - c.cx) * z / c.focal_px, (uv[:, 1] - c.cy) * z / c.focal_px, z], axis=1)
         return X, ok
 
-    def _points_from_stereo(self, uv: np.ndarray, grey_l: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _points_from_stereo(self, uv: np.ndarray, grey_l: np.ndarray, right: np.ndarray,
+                            depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """3D points by KLT along the rectified rows of the right image, forward-backward
-        checked, triangulated with :func:`slam.stereo.triangulate`."""
+        checked, triangulated with :func:`slam.stereo.triangulate` on the nominal calibration
+        (no disparity offset taken off). ``depth``: the corners' dense depth, when there is
+        one: KLT starts at its disparity and a match more than ``stereo_max_disparity_gap_px``
+        away from it is dropped; else KLT starts at the disparity of 3 m."""
         p = self.params
         grey_r = self._grey(right, "right")
         guess = uv.copy()
-        guess[:, 0] = np.maximum(guess[:, 0] - self.calib.fb / 3.0, 0)  # start at the disparity of 3 m
+        prior = np.full(len(uv), self.calib.fb / 3.0) if depth is None else self.calib.fb / depth
+        guess[:, 0] = np.maximum(guess[:, 0] - np.where(np.isfinite(prior), prior, self.calib.fb / 3.0), 0)
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
         uv_r, st, _ = cv2.calcOpticalFlowPyrLK(grey_l, grey_r, uv, guess, winSize=self._win, maxLevel=p.klt_levels,
                                                criteria=self._criteria, flags=flags)
@@ -520,6 +637,9 @@ class StereoVO:
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - uv, axis=1) < p.klt_fb_max_px)
         ok &= np.abs(uv_r[:, 1] - uv[:, 1]) < p.stereo_max_row_error_px
         ok &= uv[:, 0] - uv_r[:, 0] > 0
+        if depth is not None:
+            with np.errstate(invalid="ignore"):
+                ok &= np.abs(uv[:, 0] - uv_r[:, 0] - prior) <= p.stereo_max_disparity_gap_px
         # y from the left row alone: the right row is a noisy copy on a rectified pair
         X = triangulate(uv[:, 0], uv[:, 1], uv_r[:, 0], uv[:, 1], self.calib)
         return X, ok
@@ -532,13 +652,30 @@ class StereoVO:
         uv = self.detect(grey)
         if len(uv) < p.min_features:
             return VoFailure.NO_TEXTURE
-        X, ok = self._points_from_depth(uv, depth) if depth is not None else self._points_from_stereo(uv, grey, right)
+        raw = None  # sparse stereo on the nominal calibration: the offset's measurement (a dense depth is not used for it)
+        if depth is not None:
+            X, ok = self._points_from_depth(uv, depth)
+            if self.offset is not None:  # the dense depth as it came, before any offset was taken off
+                raw, raw_ok = self._points_from_stereo(uv, grey, right, X[:, 2] if self.disparity_offset == 0.0 else
+                                                       self.calib.fb / (self.calib.fb / X[:, 2] + self.disparity_offset))
+        else:
+            raw, ok = self._points_from_stereo(uv, grey, right)
+            raw_ok = ok.copy()
+            with np.errstate(invalid="ignore"):
+                X = raw * (remove_disparity_offset(raw[:, 2], self.calib, self.disparity_offset) / raw[:, 2])[:, None]
         with np.errstate(invalid="ignore"):
             ok &= (X[:, 2] >= p.min_depth_m) & (X[:, 2] <= self._max_depth)
         if ok.sum() < p.min_features:
             return VoFailure.NO_DEPTH
         X = X[ok]
-        kf = _Keyframe(frame_id, t, grey, uv[ok], X, stereo_point_covariance(X, self.calib, p.pixel_noise_px), T_odo.copy())
+        if raw is not None and self.offset is not None:
+            with np.errstate(invalid="ignore"):
+                raw_ok &= (raw[:, 2] >= p.min_depth_m) & (raw[:, 2] <= self._max_depth)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                disparity = np.where(raw_ok, self.calib.fb / raw[:, 2], np.nan)[ok]
+        else:
+            disparity = None
+        kf = _Keyframe(frame_id, t, grey, uv[ok], X, stereo_point_covariance(X, self.calib, p.pixel_noise_px), T_odo.copy(), disparity)
         self.history.append(kf)
         if len(self.history) > p.n_keyframes:
             self.history.remove(next(k for k in self.history if k is not keep))
@@ -611,4 +748,15 @@ class StereoVO:
                 or np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0)
                 or std[:3].max() > p.max_rotation_std_rad or std[3:].max() > p.max_translation_std_m):
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
-        return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n, s, map_cov)
+        return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n, s, map_cov, idx[sel])
+
+    def _measure_offset(self, kf: _Keyframe, m: _Measurement) -> None:
+        """Fuse the rig's disparity offset as ``kf``'s sparse disparities and ``m``'s inliers
+        show it (:func:`two_view_disparity_offset`), once per keyframe: when the keyframe
+        is replaced, its last measurement has the widest baseline."""
+        if self.offset is None or kf.disparity is None:
+            return
+        ids = m.inlier_ids
+        found = two_view_disparity_offset(m.T, kf.uv[ids], kf.disparity[ids], m.inlier_uv, self.calib, self.params.pixel_noise_px)
+        if found is not None:
+            self.offset.add(kf.frame_id, *found)

@@ -19,6 +19,7 @@ import numpy as np
 
 from sim.robots import make_robot
 from sim.scenario import load_scenario
+from sim.world.calibration_errors import CalibrationError, RigError, perturb_cameras
 from sim.world.sensors import StereoRenderer
 from sim.world.terrain import generate_terrain
 from sim.world.compose import build_world
@@ -67,9 +68,11 @@ COPTER = {"name": "copter", "preset": "ardea", "start": {"xy": [-5, -2], "yaw_de
 
 
 def render_sequence(robot: dict, rig_name: str, *, duration_s: float, rate_hz: float = 5.0, skip_s: float = 0.0,
-                    seed: int = 5, terrain: dict | None = None) -> StereoSequence:
+                    seed: int = 5, terrain: dict | None = None, rig_error: RigError | None = None) -> StereoSequence:
     """Drive ``robot`` (a scenario robot dict) for ``skip_s + duration_s`` seconds and
-    render its rig ``rig_name`` at ``rate_hz`` after the first ``skip_s`` seconds."""
+    render its rig ``rig_name`` at ``rate_hz`` after the first ``skip_s`` seconds;
+    ``rig_error``: the true cameras differ from the nominal ones the sequence's
+    calibration holds (sim/world/calibration_errors.py)."""
     sc = load_scenario({"name": "vo", "duration_s": skip_s + duration_s + 1, "seed": seed,
                         "terrain": terrain or TERRAIN, "robots": [robot]})
     clear = [(tuple(r.start.xy), 2.0) for r in sc.robots]
@@ -79,11 +82,13 @@ def render_sequence(robot: dict, rig_name: str, *, duration_s: float, rate_hz: f
     world = build_world(sc, ter, [make_robot(c, tags[c.name]) for c in sc.robots])
     bot = world.robots[0]
     rig = next(r for r in bot.stereo_rigs if r.name == rig_name)
+    if rig_error is not None:
+        perturb_cameras(world.model, bot, CalibrationError({r.name: rig_error if r is rig else RigError() for r in bot.stereo_rigs}))
     calib = StereoCalibration.from_intrinsics(rig.intrinsics, rig.baseline_m, rig.width, rig.height)
     seq = StereoSequence(f"{bot.preset}/{rig_name}", calib, [], [], [], [])
     if skip_s > 0:
         world.advance(skip_s)
-    renderer = StereoRenderer(world.model, rig, sc.robots[0].camera)
+    renderer = StereoRenderer(world.model, rig, sc.robots[0].camera, rig_error)
     try:
         for _ in range(round(duration_s * rate_hz)):
             world.advance(1.0 / rate_hz)

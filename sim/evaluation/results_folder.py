@@ -212,6 +212,9 @@ def _evaluate_onboard(run: Run, out: Path, name: str, truth: inputs.TeamTruth, r
     filter_section, filter_plot = _guarded(
         out, f"filter evaluation of {name}", lambda: _filter_section(out, name, inputs.filter_input(onboard), truth.of(name), recorder)
     )
+    offset = ((filter_section or {}).get("vo") or {}).get("disparity_offset")
+    if offset is not None:  # the truth beside the robot's estimate
+        offset["true_px"] = run.calibration_errors[name].rigs[onboard.vo_rig.name].disparity_offset_px(onboard.vo_rig)
     robot_map, map_plot = _guarded(
         out,
         f"map evaluation of {name}",

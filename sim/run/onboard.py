@@ -52,9 +52,9 @@ from slam.navigation.explorer import Explorer
 from slam.navigation.observation import peer_to_observe
 from slam.obstacles import Classification, ObstacleParams
 from slam.rest import RestParams
-from slam.stereo import StereoCalibration, depth_error
+from slam.stereo import StereoCalibration, depth_error, remove_disparity_offset
 from slam.submap import SubmapParams
-from slam.vo import StereoVO, VoResult
+from slam.vo import StereoVO, VoParams, VoResult
 
 TRUTH_MATCH_S = 1e-6  # s: a truth sample is at the filter's time within this
 
@@ -180,7 +180,7 @@ class OnboardStack:
         mapping = cfg.mapping
         self.estimator = LocalEstimator(
             filter_params(imu_spec, gravity, cfg),
-            StereoVO(calibration(self.vo_rig)),
+            StereoVO(calibration(self.vo_rig), VoParams(**slam_kwargs(VoParams, cfg))),
             init_time=robot.cfg.route.start_delay_s,
             rest_window=cfg.initial_rest_s,
             frame_switch_distance=None if mapping.enabled else cfg.frame_switch_distance_m,
@@ -365,14 +365,16 @@ class OnboardStack:
         floor = self.robot.min_mapping_height_m
         if floor is not None and (est.T_first_current @ est.in_frame(frame.T_local_body, frame.frame_index))[2, 3] < floor:
             return  # e.g. a hexacopter on the ground or taking off: its downward stereo sees the ground closer than it can match
-        self.lane.submit("mapping", work=lambda: self._map(frame, *images), on_done=lambda c, t_done: self._mapped(frame, images[0], c, t_done))
+        self.lane.submit("mapping", work=lambda: self._map(frame, *images), on_done=lambda out, t_done: self._mapped(frame, *out, t_done))
 
-    def _map(self, frame: FramePose, depth: np.ndarray, left: np.ndarray) -> Classification:
-        """Classify and integrate one depth image along the filter's pose of its frame,
+    def _map(self, frame: FramePose, depth: np.ndarray, left: np.ndarray) -> tuple[np.ndarray, Classification]:
+        """Classify and integrate one depth image, less the VO's estimate of the rig's
+        disparity offset (slam/stereo_offset.py), along the filter's pose of its frame,
         expressed in the current local frame (a switch may have happened since)."""
         est = self.estimator
+        depth = remove_disparity_offset(depth, est.vo.calib, est.vo.disparity_offset)
         T_local_body = est.in_frame(frame.T_local_body, frame.frame_index)
-        return self.mapper.integrate(frame.t, depth, left, T_local_body, frame.T_body_cam, est.T_first_current)
+        return depth, self.mapper.integrate(frame.t, depth, left, T_local_body, frame.T_body_cam, est.T_first_current)
 
     def _mapped(self, frame: FramePose, depth: np.ndarray, classification: Classification, now: float) -> None:
         """After a mapping job: the evaluation's look at the image (outside the job, whose wall

@@ -39,7 +39,7 @@ import numpy as np
 from sim.robots.base import Robot
 from sim.scenario import CalibrationRealism
 from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
-from slam.lie import se3, so3_exp
+from slam.lie import se3, so3_exp, so3_log
 
 __all__ = ["CalibrationError", "RigError", "believed_body_camera", "draw_calibration_errors", "perturb_cameras"]
 
@@ -56,6 +56,12 @@ class RigError:
     baseline_scale: float = 1.0
     focal_scale: float = 1.0
     T_cam_error: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def disparity_offset_px(self, rig: StereoRig) -> float:
+        """The disparity offset the right camera's yaw causes at the image centre (px): a
+        turn ``θ`` about the camera's y axis moves every right-image point by ``-f θ``, so
+        measured disparities exceed the true ones by ``f θ`` (slam/stereo_offset.py)."""
+        return float(rig.focal_px * self.focal_scale * so3_log(self.R_right)[1])
 
     def true_vfov_deg(self, rig: StereoRig) -> float:
         """MuJoCo ``fovy`` of the true cameras."""
