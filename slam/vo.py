@@ -601,7 +601,8 @@ class StereoVO:
         return np.ascontiguousarray(pts[keep], dtype=np.float32)
 
     def _points_from_depth(self, uv: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """3D points at integer corners from a dense z-depth; NaN, inf and depth edges dropped."""
+        """3D points at integer corners from a dense z-depth (as it came: no disparity offset
+        taken off); NaN, inf and depth edges dropped."""
         p = self.params
         h, w = depth.shape
         u = np.clip(np.rint(uv[:, 0]).astype(int), 1, w - 2)
@@ -613,21 +614,22 @@ class StereoVO:
             ok = np.all(np.isfinite(patch), axis=1)
             ok &= (np.ptp(np.where(ok[:, None], patch, 0), axis=1) <= p.max_depth_jump * z)
         c = self.calib
-        z = remove_disparity_offset(z, c, self.disparity_offset)
         X = np.stack([(uv[:, 0] - c.cx) * z / c.focal_px, (uv[:, 1] - c.cy) * z / c.focal_px, z], axis=1)
         return X, ok
 
     def _points_from_stereo(self, uv: np.ndarray, grey_l: np.ndarray, right: np.ndarray,
-                            depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                            dense_z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """3D points by KLT along the rectified rows of the right image, forward-backward
         checked, triangulated with :func:`slam.stereo.triangulate` on the nominal calibration
-        (no disparity offset taken off). ``depth``: the corners' dense depth, when there is
-        one: KLT starts at its disparity and a match more than ``stereo_max_disparity_gap_px``
-        away from it is dropped; else KLT starts at the disparity of 3 m."""
+        (no disparity offset taken off). ``dense_z``: the corners' depth from a dense depth
+        image, when there is one: KLT starts at its disparity and a match more than
+        ``stereo_max_disparity_gap_px`` away from it is dropped; else KLT starts at the
+        disparity of 3 m."""
         p = self.params
         grey_r = self._grey(right, "right")
         guess = uv.copy()
-        prior = np.full(len(uv), self.calib.fb / 3.0) if depth is None else self.calib.fb / depth
+        with np.errstate(divide="ignore", invalid="ignore"):
+            prior = np.full(len(uv), self.calib.fb / 3.0) if dense_z is None else self.calib.fb / dense_z
         guess[:, 0] = np.maximum(guess[:, 0] - np.where(np.isfinite(prior), prior, self.calib.fb / 3.0), 0)
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
         uv_r, st, _ = cv2.calcOpticalFlowPyrLK(grey_l, grey_r, uv, guess, winSize=self._win, maxLevel=p.klt_levels,
@@ -637,7 +639,7 @@ class StereoVO:
         ok = (st.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm(back - uv, axis=1) < p.klt_fb_max_px)
         ok &= np.abs(uv_r[:, 1] - uv[:, 1]) < p.stereo_max_row_error_px
         ok &= uv[:, 0] - uv_r[:, 0] > 0
-        if depth is not None:
+        if dense_z is not None:
             with np.errstate(invalid="ignore"):
                 ok &= np.abs(uv[:, 0] - uv_r[:, 0] - prior) <= p.stereo_max_disparity_gap_px
         # y from the left row alone: the right row is a noisy copy on a rectified pair
@@ -652,29 +654,27 @@ class StereoVO:
         uv = self.detect(grey)
         if len(uv) < p.min_features:
             return VoFailure.NO_TEXTURE
-        raw = None  # sparse stereo on the nominal calibration: the offset's measurement (a dense depth is not used for it)
+        sparse = None  # sparse stereo on the nominal calibration: the offset's measurement
         if depth is not None:
             X, ok = self._points_from_depth(uv, depth)
-            if self.offset is not None:  # the dense depth as it came, before any offset was taken off
-                raw, raw_ok = self._points_from_stereo(uv, grey, right, X[:, 2] if self.disparity_offset == 0.0 else
-                                                       self.calib.fb / (self.calib.fb / X[:, 2] + self.disparity_offset))
+            if self.offset is not None:
+                sparse, sparse_ok = self._points_from_stereo(uv, grey, right, X[:, 2])
         else:
-            raw, ok = self._points_from_stereo(uv, grey, right)
-            raw_ok = ok.copy()
+            X, ok = self._points_from_stereo(uv, grey, right)
+            sparse, sparse_ok = X, ok.copy()
+        if self.disparity_offset != 0.0:
             with np.errstate(invalid="ignore"):
-                X = raw * (remove_disparity_offset(raw[:, 2], self.calib, self.disparity_offset) / raw[:, 2])[:, None]
+                X = X * (remove_disparity_offset(X[:, 2], self.calib, self.disparity_offset) / X[:, 2])[:, None]
         with np.errstate(invalid="ignore"):
             ok &= (X[:, 2] >= p.min_depth_m) & (X[:, 2] <= self._max_depth)
         if ok.sum() < p.min_features:
             return VoFailure.NO_DEPTH
         X = X[ok]
-        if raw is not None and self.offset is not None:
-            with np.errstate(invalid="ignore"):
-                raw_ok &= (raw[:, 2] >= p.min_depth_m) & (raw[:, 2] <= self._max_depth)
+        disparity = None
+        if sparse is not None and self.offset is not None:
             with np.errstate(divide="ignore", invalid="ignore"):
-                disparity = np.where(raw_ok, self.calib.fb / raw[:, 2], np.nan)[ok]
-        else:
-            disparity = None
+                sparse_ok &= (sparse[:, 2] >= p.min_depth_m) & (sparse[:, 2] <= self._max_depth)
+                disparity = np.where(sparse_ok, self.calib.fb / sparse[:, 2], np.nan)[ok]
         kf = _Keyframe(frame_id, t, grey, uv[ok], X, stereo_point_covariance(X, self.calib, p.pixel_noise_px), T_odo.copy(), disparity)
         self.history.append(kf)
         if len(self.history) > p.n_keyframes:
