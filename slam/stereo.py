@@ -231,17 +231,12 @@ def disparity_to_depth(disparity: np.ndarray, calibration: StereoCalibration) ->
 
 def remove_disparity_offset(depth: np.ndarray | float, calibration: StereoCalibration, offset_px: float):
     """Depth with ``offset_px`` taken off its disparity, ``z' = f b / (f b / z - δ)``
-    (slam.stereo_offset); NaN stays NaN, a corrected disparity at or below zero is ``inf``.
-    ``offset_px == 0`` returns ``depth`` itself."""
+    (slam.stereo_offset), through :func:`disparity_to_depth`: NaN stays NaN, a corrected
+    disparity at or below zero is ``inf``. ``offset_px == 0`` returns ``depth`` itself."""
     if offset_px == 0.0:
         return depth
-    z = np.asarray(depth)
-    dtype = z.dtype if np.issubdtype(z.dtype, np.floating) else np.float64
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = calibration.fb / z.astype(dtype, copy=False) - dtype.type(offset_px)
-        out = np.where(d > 0, dtype.type(calibration.fb) / d, dtype.type(np.inf)).astype(dtype, copy=False)
-    out[np.isnan(z)] = np.nan
-    return out
+    with np.errstate(divide="ignore"):
+        return disparity_to_depth(calibration.fb / np.asarray(depth) - offset_px, calibration)
 
 
 def depth_to_points(depth: np.ndarray, calibration: StereoCalibration) -> np.ndarray:

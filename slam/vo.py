@@ -172,7 +172,6 @@ class VoResult:
     matches: int = 0  # tracked features before PnP (diagnostics)
     disparity_sensitivity: np.ndarray | None = None  # (6,) how T_kf_cur moves per pixel of disparity offset (:func:`disparity_bias_sensitivity`)
     map_cov: np.ndarray | None = None  # 6x6 share of ``cov`` from the keyframe's points, alike in all its deltas (:func:`map_covariance`)
-    disparity_offset: float = 0.0  # the rig's estimated disparity offset after this frame (px; 0 when not estimated)
 
 
 @dataclass
@@ -284,6 +283,15 @@ def _reprojection(T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarra
     return r, J, W, JpRt
 
 
+def _retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """``T Exp(xi)`` to first order in the translation, as :func:`refine_pose` steps: the
+    rotation by OpenCV's Rodrigues (see the note above), the translation ``t + R xi_t``."""
+    out = T.copy()
+    out[:3, :3] = T[:3, :3] @ cv2.Rodrigues(np.asarray(xi[:3], dtype=float).reshape(3, 1))[0]
+    out[:3, 3] = T[:3, 3] + T[:3, :3] @ xi[3:6]
+    return out
+
+
 def refine_pose(
     T: np.ndarray,
     X: np.ndarray,
@@ -307,7 +315,6 @@ def refine_pose(
     T = np.array(T, dtype=float)
     s2 = pixel_noise_px**2
     for it in range(iterations + 1):
-        R, t = T[:3, :3], T[:3, 3]
         r, J, W, _ = _reprojection(T, X, cov_X, uv, K, s2)
         WJ = W @ J  # (n, 2, 6)
         H = J.reshape(-1, 6).T @ WJ.reshape(-1, 6)
@@ -318,8 +325,7 @@ def refine_pose(
             xi = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             return T, H, r, W
-        T[:3, :3] = R @ cv2.Rodrigues(xi[:3].reshape(3, 1))[0]
-        T[:3, 3] = t + R @ xi[3:]
+        T = _retract(T, xi)
         if np.linalg.norm(xi) < 1e-10:
             iterations = it + 1  # converged: one more pass for H at the solution
     raise AssertionError("unreachable")
@@ -373,33 +379,22 @@ def two_view_disparity_offset(
     ray, measured, d, uv1 = ray[ok], d[ok], d[ok], np.asarray(uv1, dtype=float)[ok]
     w_img, w_disp = 1.0 / pixel_noise_px**2, 0.5 / pixel_noise_px**2
     T, delta = np.array(T, dtype=float), 0.0
+    K, no_cov = calib.K, np.zeros((len(d), 3, 3))  # the points' errors are unknowns here, not covariances
     S = None
     for it in range(iterations):
         if len(d) < 8 or np.any(d <= 0):
             return None
         X = ray * (fb / d)[:, None]
-        Xc = (X - T[:3, 3]) @ T[:3, :3]
-        if np.any(Xc[:, 2] <= 0):
+        if np.any((X - T[:3, 3]) @ T[:3, 2] <= 0):  # behind the later camera
             return None
-        zi = 1.0 / Xc[:, 2]
-        r = uv1 - (f * Xc[:, :2] * zi[:, None] + [calib.cx, calib.cy])
+        r, J, _, JpRt = _reprojection(T, X, no_cov[: len(d)], uv1, K, 1.0)  # r_new = r - J xi
         s = measured - d - delta
         if it == 2:  # gate once the estimate has settled
             keep = (np.sum(r * r, axis=1) * w_img + s * s * w_disp) < gate**2
-            ray, measured, d, uv1 = ray[keep], measured[keep], d[keep], uv1[keep]
-            X, Xc, zi, r, s = X[keep], Xc[keep], zi[keep], r[keep], s[keep]
+            ray, measured, d, uv1, X, s, r, J, JpRt = (v[keep] for v in (ray, measured, d, uv1, X, s, r, J, JpRt))
             if len(d) < 8:
                 return None
-        Jp = np.zeros((len(d), 2, 3))
-        Jp[:, 0, 0] = Jp[:, 1, 1] = f * zi
-        Jp[:, :, 2] = -f * Xc[:, :2] * (zi**2)[:, None]
-        J = np.zeros((len(d), 2, 6))  # d(pixel)/d(xi): r_new = r - J xi, as in _reprojection
-        x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-        for k in range(2):
-            a_, b_, c_ = Jp[:, k, 0], Jp[:, k, 1], Jp[:, k, 2]
-            J[:, k, 0], J[:, k, 1], J[:, k, 2] = b_ * z - c_ * y, c_ * x - a_ * z, a_ * y - b_ * x
-        J[:, :, 3:] = -Jp
-        a = -np.einsum("nij,nj->ni", Jp @ T[:3, :3].T, X / d[:, None])  # d(pixel)/d(d_i): X = ray f b / d
+        a = -np.einsum("nij,nj->ni", JpRt, X / d[:, None])  # d(pixel)/d(d_i): X = ray f b / d
         H_cc = np.zeros((7, 7))
         H_cc[:6, :6] = w_img * np.einsum("nki,nkj->ij", J, J)
         H_cc[6, 6] = w_disp * len(d)
@@ -417,9 +412,7 @@ def two_view_disparity_offset(
         except np.linalg.LinAlgError:
             return None
         d = d + (g_p - H_cp @ step) / H_pp
-        R = T[:3, :3]
-        T[:3, 3] = T[:3, 3] + R @ step[3:6]
-        T[:3, :3] = R @ cv2.Rodrigues(step[:3].reshape(3, 1))[0]
+        T = _retract(T, step[:6])
         delta += float(step[6])
     try:
         info = 1.0 / float(np.linalg.inv(S)[6, 6])
@@ -551,7 +544,7 @@ class StereoVO:
             return VoResult(t, frame_id, False, reason, None, None, None, 0, np.zeros((0, 2)), new_kf, history,
                             0 if meas is None else meas.matches)
         return VoResult(t, frame_id, True, None, ref.frame_id, meas.T, meas.cov, len(meas.inlier_uv), meas.inlier_uv,
-                        new_kf, history, meas.matches, meas.disparity_sensitivity, meas.map_cov, self.disparity_offset)
+                        new_kf, history, meas.matches, meas.disparity_sensitivity, meas.map_cov)
 
     # ------------------------------------------------------------------ keyframes
 

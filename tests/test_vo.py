@@ -68,16 +68,21 @@ def copter() -> StereoSequence:
 _RUNS: dict = {}
 
 
-def run_vo(seq: StereoSequence, params: VoParams | None = None, *, dense: bool = False, calib: StereoCalibration | None = None):
+def vo_run(seq: StereoSequence, params: VoParams | None = None, *, dense: bool = False, calib: StereoCalibration | None = None):
+    """The VO after the whole sequence, with its results (cached per sequence and settings)."""
     params = params or VoParams()
     key = (id(seq), params, dense, calib)
     if key not in _RUNS:
         calib = calib or seq.calib
         vo = StereoVO(calib, params)
         matcher = StereoMatcher(calib) if dense else None
-        _RUNS[key] = [vo.process(i, seq.t[i], seq.left[i], seq.right[i], matcher.depth(seq.left[i], seq.right[i]) if dense else None)
-                      for i in range(len(seq))]
+        _RUNS[key] = vo, [vo.process(i, seq.t[i], seq.left[i], seq.right[i], matcher.depth(seq.left[i], seq.right[i]) if dense else None)
+                          for i in range(len(seq))]
     return _RUNS[key]
+
+
+def run_vo(seq: StereoSequence, params: VoParams | None = None, *, dense: bool = False, calib: StereoCalibration | None = None):
+    return vo_run(seq, params, dense=dense, calib=calib)[1]
 
 
 def evaluate(seq: StereoSequence, results) -> dict:
@@ -287,21 +292,16 @@ def test_disparity_offset_is_estimated_and_taken_off(rover_yawed, dense):
     1.8 %). On the nominal rig the estimate stays within 0.1 px of zero."""
     seq = rover_yawed
     truth = seq.calib.focal_px * math.radians(0.05)
-    estimated = run_vo(seq, dense=dense)
-    left_in = run_vo(seq, VoParams(estimate_disparity_offset=False), dense=dense)
-    vo = StereoVO(seq.calib)  # the same run, to read the estimate's standard deviation
-    depth = StereoMatcher(seq.calib).depth if dense else (lambda left, right: None)
-    for i in range(len(seq)):
-        vo.process(i, seq.t[i], seq.left[i], seq.right[i], depth(seq.left[i], seq.right[i]))
-    assert vo.disparity_offset == estimated[-1].disparity_offset
+    vo, estimated = vo_run(seq, dense=dense)
+    without, left_in = vo_run(seq, VoParams(estimate_disparity_offset=False), dense=dense)
     assert abs(vo.disparity_offset - truth) < 2.5 * vo.offset.std and vo.disparity_offset > truth / 2
-    assert {r.disparity_offset for r in left_in} == {0.0}
+    assert without.offset is None and without.disparity_offset == 0.0
     assert evaluate(seq, estimated)["drift"] < 0.7 * evaluate(seq, left_in)["drift"]
 
 
 @pytest.mark.parametrize("dense", [False, True], ids=["sparse", "sgbm"])
 def test_disparity_offset_of_a_nominal_rig_stays_near_zero(rover, dense):
-    assert abs(run_vo(rover, dense=dense)[-1].disparity_offset) < 0.1
+    assert abs(vo_run(rover, dense=dense)[0].disparity_offset) < 0.1
 
 
 def test_standing_still_keeps_the_keyframe(rover):
