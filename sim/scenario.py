@@ -782,12 +782,18 @@ class SlamConfig(StrictModel):
         SlamParam(FilterParams, "disparity_bias_std"),
         SlamParam(VoParams, "disparity_offset_prior_px"),
         description="std of a disparity offset common to all VO points (rectification error), held by the filter as a consider parameter"
-        " and the prior of its online estimate",
+        " and the prior of each coefficient of its online estimate",
     )
     vo_disparity_offset_estimation: bool = slam_field(
         SlamParam(VoParams, "estimate_disparity_offset"),
         description="estimate the VO rig's disparity offset while moving and take it off the VO's and the mapping's depths "
         "(slam/stereo_offset.py; false: the calibration as given, thesis 5.1.1)",
+    )
+    vo_disparity_offset_model: Literal["yaw", "rotation"] = slam_field(
+        SlamParam(VoParams, "disparity_offset_model"),
+        description="what the online estimate models: the right camera's yaw alone (its offset, larger towards the image's "
+        "sides) or its whole rotation error (yaw, roll and pitch, each offsetting the disparities in its own pattern; "
+        "slam/stereo_offset.py, docs/realism.md)",
     )
     camera_rotation_std_deg: NonNegFloat = slam_field(
         SlamParam(FilterParams, "extrinsic_rotation_std", degrees=True),

@@ -229,14 +229,45 @@ def disparity_to_depth(disparity: np.ndarray, calibration: StereoCalibration) ->
     return depth
 
 
-def remove_disparity_offset(depth: np.ndarray | float, calibration: StereoCalibration, offset_px: float):
-    """Depth with ``offset_px`` taken off its disparity, ``z' = f b / (f b / z - δ)``
-    (slam.stereo_offset), through :func:`disparity_to_depth`: NaN stays NaN, a corrected
-    disparity at or below zero is ``inf``. ``offset_px == 0`` returns ``depth`` itself."""
-    if offset_px == 0.0:
+def disparity_offset_sensitivity(u, v, disparity, calibration: StereoCalibration) -> np.ndarray:
+    """How much a measured disparity exceeds the true one per pixel of each coefficient
+    ``c = f θ`` of the right camera's rotation error ``θ = (θx, θy, θz)`` (OpenCV axes, the
+    true right camera in its rectified frame; slam/stereo_offset.py): ``(..., 3)``, the
+    offset being ``s · c``. A turn ``θ`` moves the right image's normalised point ``(x, y)``
+    by ``-θy (1 + x^2) + θz y + θx x y`` along its row to first order (the rotation's image
+    motion field), so ``s = (-x y, 1 + x^2, -y)``, ``(x, y)`` the right pixel ``(u - d, v)``
+    normalised: a yaw offsets every disparity, most at the image's sides, a roll tilts the
+    offset from top to bottom row, a pitch twists it. ``u, v, disparity``: the left pixels
+    and their measured disparities, broadcast together."""
+    x = (np.asarray(u, dtype=float) - np.asarray(disparity, dtype=float) - calibration.cx) / calibration.focal_px
+    y = (np.asarray(v, dtype=float) - calibration.cy) / calibration.focal_px
+    x, y = np.broadcast_arrays(x, y)
+    return np.stack([-x * y, 1.0 + x * x, -y], axis=-1)
+
+
+def remove_disparity_offset(depth, calibration: StereoCalibration, coefficients_px, uv: np.ndarray | None = None):
+    """Depth with the right camera's rotation error taken off its disparity,
+    ``z' = f b / (d - s · c)`` (:func:`disparity_offset_sensitivity`, ``d = f b / z``),
+    through :func:`disparity_to_depth`: NaN stays NaN, a corrected disparity at or below
+    zero is ``inf``, the dtype is kept. ``coefficients_px``: ``c = f θ`` (3,); ``uv``: the
+    left pixels (N, 2) of the depths (N,), or None for a depth image (H, W) on the pixel
+    grid. All-zero coefficients return ``depth`` itself."""
+    c = np.asarray(coefficients_px, dtype=float)
+    if c.shape != (3,):
+        raise StereoException(f"coefficients_px must have shape (3,), got {c.shape}")
+    if not c.any():
         return depth
-    with np.errstate(divide="ignore"):
-        return disparity_to_depth(calibration.fb / np.asarray(depth) - offset_px, calibration)
+    depth = np.asarray(depth)
+    if uv is None:
+        if depth.ndim != 2:
+            raise StereoException(f"without uv, depth must be a 2-D image, got shape {depth.shape}")
+        u, v = np.arange(depth.shape[1])[None, :], np.arange(depth.shape[0])[:, None]
+    else:
+        u, v = np.asarray(uv)[:, 0], np.asarray(uv)[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disparity = calibration.fb / depth
+        offset = disparity_offset_sensitivity(u, v, np.where(np.isfinite(disparity), disparity, 0.0), calibration) @ c
+        return disparity_to_depth((disparity - offset).astype(depth.dtype), calibration)
 
 
 def depth_to_points(depth: np.ndarray, calibration: StereoCalibration) -> np.ndarray:

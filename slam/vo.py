@@ -38,9 +38,10 @@ What it does per stereo pair
    active keyframe cannot be matched, the older keyframes of the history are tried
    (newest first); a good match re-activates the old keyframe, which keeps the
    estimate locally drift-free when the robot returns (Schmid et al. 2012 via 4.1.1).
-6. The rig's disparity offset (our addition, slam.stereo_offset): when a keyframe is
+6. The rig's disparity offsets (our addition, slam.stereo_offset): when a keyframe is
    replaced, its last measurement (the widest baseline) and sparse subpixel disparities
-   of its corners (KLT along the rows, also with a dense depth) measure the offset
+   of its corners (KLT along the rows, also with a dense depth) measure the right
+   camera's rotation error, which offsets each pixel's disparity by its own amount
    (:func:`two_view_disparity_offset`); the fused estimate is taken off the disparities
    of every later keyframe (``StereoVO.disparity_offset``, for the caller's mapping too).
 
@@ -72,8 +73,16 @@ import cv2
 import numpy as np
 
 from slam.lie import adjoint
-from slam.stereo import DEFAULT_PIXEL_ERROR, StereoCalibration, max_depth_for_error, remove_disparity_offset, triangulate
+from slam.stereo import (
+    DEFAULT_PIXEL_ERROR,
+    StereoCalibration,
+    disparity_offset_sensitivity,
+    max_depth_for_error,
+    remove_disparity_offset,
+    triangulate,
+)
 from slam.stereo_offset import DisparityOffsetEstimate
+from slam.track_refinement import refine_tracks_affine
 
 
 class VoException(Exception):
@@ -92,6 +101,13 @@ class VoFailure(StrEnum):
     TOO_FEW_MATCHES = "too_few_matches"  # fewer than ``min_inliers`` keyframe features tracked
     TOO_FEW_INLIERS = "too_few_inliers"  # PnP-RANSAC or the Mahalanobis gate left too few
     DEGENERATE = "degenerate"  # singular information matrix or std above the limits
+
+
+CHI2_3_MEDIAN = 2.366  # the median of a chi-square with 3 degrees of freedom
+
+#: The coefficients of ``c = f θ`` (slam.stereo_offset) each ``VoParams.disparity_offset_model``
+#: estimates: the right camera's whole rotation, or its yaw alone (roll and pitch held at zero).
+DISPARITY_OFFSET_AXES: dict[str, tuple[int, ...]] = {"rotation": (0, 1, 2), "yaw": (1,)}
 
 
 @dataclass(frozen=True)
@@ -138,11 +154,15 @@ class VoParams:
     estimate_disparity_offset: bool = True
     disparity_offset_prior_px: float = 0.25  # the calibration's uncertainty of the offset (std; 0: none, not estimated)
     disparity_offset_gate_sigma: float = 3.0
+    disparity_offset_model: str = "yaw"  # the right camera's yaw alone or its whole rotation (3 coefficients; slam.stereo_offset)
+    disparity_offset_pixel_noise_px: float = 0.1  # the offset's tracks, refined (slam.track_refinement): a floor, see two_view_disparity_offset
+    disparity_offset_window_px: int = 21  # their affine patches
 
     def __post_init__(self):
         positive = ("max_features", "grid_cols", "grid_rows", "min_features", "max_point_error_m", "klt_window_px",
                     "klt_fb_max_px", "ransac_threshold_px", "ransac_iterations", "refine_iterations",
-                    "inlier_chi2", "min_inliers", "n_keyframes", "pixel_noise_px", "disparity_offset_gate_sigma")
+                    "inlier_chi2", "min_inliers", "n_keyframes", "pixel_noise_px", "disparity_offset_gate_sigma",
+                    "disparity_offset_pixel_noise_px")
         bad = [f"{k}={getattr(self, k)}" for k in positive if not getattr(self, k) > 0]
         if not self.disparity_offset_prior_px >= 0:
             bad.append(f"disparity_offset_prior_px={self.disparity_offset_prior_px} (must be >= 0)")
@@ -150,6 +170,10 @@ class VoParams:
             raise VoException(f"VoParams must be positive: {', '.join(bad)}")
         if self.min_inliers < 4:
             raise VoException(f"min_inliers must be >= 4 (PnP with RANSAC), got {self.min_inliers}")
+        if self.disparity_offset_model not in DISPARITY_OFFSET_AXES:
+            raise VoException(f"disparity_offset_model must be one of {sorted(DISPARITY_OFFSET_AXES)}, got {self.disparity_offset_model!r}")
+        if self.disparity_offset_window_px < 5 or self.disparity_offset_window_px % 2 == 0:
+            raise VoException(f"disparity_offset_window_px must be odd and at least 5, got {self.disparity_offset_window_px}")
         if not 0 <= self.keyframe_min_inlier_share <= 1:
             raise VoException(f"keyframe_min_inlier_share must be in [0, 1], got {self.keyframe_min_inlier_share}")
 
@@ -352,21 +376,26 @@ def disparity_bias_sensitivity(
 
 def two_view_disparity_offset(
     T: np.ndarray, uv0: np.ndarray, disparity: np.ndarray, uv1: np.ndarray, calib: StereoCalibration,
-    pixel_noise_px: float, iterations: int = 5, gate: float = 4.0,
-) -> tuple[float, float] | None:
-    """The rig's disparity offset ``δ`` (px: measured disparities exceed the true ones by it)
-    from one keyframe and one later image of the same rig, with its information (1 / px^2);
-    None when the pair holds none (no translation, too few points). Our addition
-    (slam.stereo_offset).
+    pixel_noise_px: float, axes: tuple[int, ...] = (0, 1, 2), iterations: int = 5, gate: float = 4.0,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The rig's disparity offset coefficients ``c = f θ`` (px, (3,): the right camera's
+    rotation error, measured disparities exceed the true ones by ``s_i · c``,
+    :func:`slam.stereo.disparity_offset_sensitivity`) from one keyframe and one later
+    image of the same rig, with their information (3x3, 1 / px^2); None when the pair
+    holds none (no translation, too few points). Our addition (slam.stereo_offset).
 
     A two-view bundle adjustment: unknowns the pose ``T`` of the later camera in the
-    keyframe (right perturbation, as :func:`refine_pose`), ``δ`` and each point's true
+    keyframe (right perturbation, as :func:`refine_pose`), ``c`` and each point's true
     disparity ``d_i`` on its keyframe ray through ``uv0_i``; measurements the keyframe's
-    disparities ``disparity_i = d_i + δ`` (noise ``sqrt 2 Δp``, eq. 5.2's model) and the
-    later image's pixels ``uv1_i`` (``Δp``). Gauss-Newton with the points eliminated by
-    their Schur complement (one unknown each), the reduced 7x7 system's inverse giving
-    ``δ``'s information. After two iterations, points whose residual exceeds ``gate``
-    standard deviations are dropped. Solving for the disparities matters: the offset
+    disparities ``disparity_i = d_i + s_i · c`` (noise ``sqrt 2 Δp``, eq. 5.2's model) and
+    the later image's pixels ``uv1_i`` (``Δp``). Only the coefficients in ``axes`` are
+    unknowns, the others held at zero (their rows and columns of the information zero).
+    Gauss-Newton with the points eliminated by their Schur complement (one unknown each),
+    the inverse of the reduced ``6 + k`` square system giving ``c``'s information. After
+    two iterations, points whose residual exceeds ``gate`` standard deviations are dropped.
+    ``pixel_noise_px`` is a floor: when the residuals scatter more (their chi-square over
+    its ``2 n - 6 - k`` degrees of freedom above 1, the a-posteriori variance factor), the
+    information is divided by that factor. Solving for the disparities matters: the offset
     estimated instead from the reprojection linearised at the measured points (the
     derivative of :func:`disparity_bias_sensitivity`, the pose eliminated) was biased by
     about ``-0.9 σ_d^2`` px (``σ_d`` the disparity noise; synthetic points, while this was
@@ -377,8 +406,11 @@ def two_view_disparity_offset(
     d = np.asarray(disparity, dtype=float).copy()
     ok = np.isfinite(d) & (d > 0)
     ray, measured, d, uv1 = ray[ok], d[ok], d[ok], np.asarray(uv1, dtype=float)[ok]
+    axes = list(axes)
+    k = len(axes)
+    sens = disparity_offset_sensitivity(uv0[ok, 0], uv0[ok, 1], measured, calib)[:, axes]
     w_img, w_disp = 1.0 / pixel_noise_px**2, 0.5 / pixel_noise_px**2
-    T, delta = np.array(T, dtype=float), 0.0
+    T, c = np.array(T, dtype=float), np.zeros(k)
     K, no_cov = calib.K, np.zeros((len(d), 3, 3))  # the points' errors are unknowns here, not covariances
     S = None
     for it in range(iterations):
@@ -388,39 +420,43 @@ def two_view_disparity_offset(
         if np.any((X - T[:3, 3]) @ T[:3, 2] <= 0):  # behind the later camera
             return None
         r, J, _, JpRt = _reprojection(T, X, no_cov[: len(d)], uv1, K, 1.0)  # r_new = r - J xi
-        s = measured - d - delta
-        if it == 2:  # gate once the estimate has settled
-            keep = (np.sum(r * r, axis=1) * w_img + s * s * w_disp) < gate**2
-            ray, measured, d, uv1, X, s, r, J, JpRt = (v[keep] for v in (ray, measured, d, uv1, X, s, r, J, JpRt))
+        s = measured - d - sens @ c
+        if it == 2:  # gate once the estimate has settled, on the residuals' own scale when wider than the floor's
+            e2 = np.sum(r * r, axis=1) * w_img + s * s * w_disp
+            keep = e2 < gate**2 * max(1.0, float(np.median(e2)) / CHI2_3_MEDIAN)
+            ray, measured, d, uv1, sens, X, s, r, J, JpRt = (v[keep] for v in (ray, measured, d, uv1, sens, X, s, r, J, JpRt))
             if len(d) < 8:
                 return None
         a = -np.einsum("nij,nj->ni", JpRt, X / d[:, None])  # d(pixel)/d(d_i): X = ray f b / d
-        H_cc = np.zeros((7, 7))
+        H_cc = np.zeros((6 + k, 6 + k))
         H_cc[:6, :6] = w_img * np.einsum("nki,nkj->ij", J, J)
-        H_cc[6, 6] = w_disp * len(d)
-        H_cp = np.empty((len(d), 7))
+        H_cc[6:, 6:] = w_disp * sens.T @ sens
+        H_cp = np.empty((len(d), 6 + k))
         H_cp[:, :6] = w_img * np.einsum("nki,nk->ni", J, a)
-        H_cp[:, 6] = w_disp
+        H_cp[:, 6:] = w_disp * sens
         H_pp = w_img * np.sum(a * a, axis=1) + w_disp
-        g_c = np.empty(7)
+        g_c = np.empty(6 + k)
         g_c[:6] = w_img * np.einsum("nki,nk->i", J, r)
-        g_c[6] = w_disp * s.sum()
+        g_c[6:] = w_disp * sens.T @ s
         g_p = w_img * np.sum(a * r, axis=1) + w_disp * s
         S = H_cc - (H_cp / H_pp[:, None]).T @ H_cp
+        chi2 = w_img * float(np.sum(r * r)) + w_disp * float(s @ s)  # at this iteration's start
         try:
             step = np.linalg.solve(S, g_c - H_cp.T @ (g_p / H_pp))
         except np.linalg.LinAlgError:
             return None
         d = d + (g_p - H_cp @ step) / H_pp
         T = _retract(T, step[:6])
-        delta += float(step[6])
+        c = c + step[6:]
     try:
-        info = 1.0 / float(np.linalg.inv(S)[6, 6])
+        info = np.linalg.inv(np.linalg.inv(S)[6:, 6:]) / max(1.0, chi2 / (2 * len(d) - 6 - k))
     except np.linalg.LinAlgError:
         return None
-    if not (math.isfinite(delta) and math.isfinite(info) and info > 1e-6 and np.linalg.cond(S) < 1e12):
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(info)) and np.trace(info) > 1e-6 and np.linalg.cond(S) < 1e12):
         return None
-    return delta, info
+    full_c, full_info = np.zeros(3), np.zeros((3, 3))
+    full_c[axes], full_info[np.ix_(axes, axes)] = c, 0.5 * (info + info.T)
+    return full_c, full_info
 
 
 def map_covariance(
@@ -475,10 +511,12 @@ class StereoVO:
         self.offset = DisparityOffsetEstimate(params.disparity_offset_prior_px, params.disparity_offset_gate_sigma) if estimate else None
 
     @property
-    def disparity_offset(self) -> float:
-        """The rig's disparity offset the VO takes off its keyframes' points (px; 0 unless
-        estimated, ``VoParams.estimate_disparity_offset``): for the caller's other uses of the depth."""
-        return 0.0 if self.offset is None else self.offset.value
+    def disparity_offset(self) -> np.ndarray:
+        """The coefficients ``c`` (px, (3,), slam.stereo_offset) of the rig's disparity
+        offsets the VO takes off its keyframes' points (zeros unless estimated,
+        ``VoParams.estimate_disparity_offset``): for the caller's other uses of the depth,
+        through :func:`slam.stereo.remove_disparity_offset`."""
+        return np.zeros(3) if self.offset is None else self.offset.coefficients
 
     # ------------------------------------------------------------------ public
 
@@ -521,7 +559,7 @@ class StereoVO:
         if meas is not None and meas.ok:
             T_odo_cur = ref.T_odo @ meas.T
             if not self._keeps(ref, meas):
-                self._measure_offset(ref, meas)  # its widest baseline: the keyframe's offset measurement
+                self._measure_offset(ref, meas, grey_l)  # its widest baseline: the keyframe's offset measurement
                 new_kf = self._make_keyframe(frame_id, t, grey_l, right, depth, T_odo_cur, keep=ref) is None
             elif ref is not self.active:
                 self.active = ref  # a revisit: back to the older keyframe
@@ -655,9 +693,10 @@ class StereoVO:
         else:
             X, ok = self._points_from_stereo(uv, grey, right)
             sparse, sparse_ok = X, ok.copy()
-        if self.disparity_offset != 0.0:
+        offset = self.disparity_offset
+        if offset.any():
             with np.errstate(invalid="ignore"):
-                X = X * (remove_disparity_offset(X[:, 2], self.calib, self.disparity_offset) / X[:, 2])[:, None]
+                X = X * (remove_disparity_offset(X[:, 2], self.calib, offset, uv) / X[:, 2])[:, None]
         with np.errstate(invalid="ignore"):
             ok &= (X[:, 2] >= p.min_depth_m) & (X[:, 2] <= self._max_depth)
         if ok.sum() < p.min_features:
@@ -743,13 +782,18 @@ class StereoVO:
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
         return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n, s, map_cov, idx[sel])
 
-    def _measure_offset(self, kf: _Keyframe, m: _Measurement) -> None:
-        """Fuse the rig's disparity offset as ``kf``'s sparse disparities and ``m``'s inliers
-        show it (:func:`two_view_disparity_offset`), once per keyframe: when the keyframe
-        is replaced, its last measurement has the widest baseline."""
+    def _measure_offset(self, kf: _Keyframe, m: _Measurement, grey: np.ndarray) -> None:
+        """Fuse the rig's disparity offsets as ``kf``'s sparse disparities and ``m``'s inliers
+        in ``grey`` show them (:func:`two_view_disparity_offset`), once per keyframe: when the
+        keyframe is replaced, its last measurement has the widest baseline. The inliers'
+        tracks are refined by affine patches first (slam.track_refinement: KLT's are biased
+        over such a baseline); those that are not refined are left out."""
         if self.offset is None or kf.disparity is None:
             return
-        ids = m.inlier_ids
-        found = two_view_disparity_offset(m.T, kf.uv[ids], kf.disparity[ids], m.inlier_uv, self.calib, self.params.pixel_noise_px)
+        p = self.params
+        uv0 = kf.uv[m.inlier_ids]
+        uv1, refined = refine_tracks_affine(kf.image, grey, uv0, m.inlier_uv, p.disparity_offset_window_px)
+        found = two_view_disparity_offset(m.T, uv0[refined], kf.disparity[m.inlier_ids][refined], uv1[refined], self.calib,
+                                          p.disparity_offset_pixel_noise_px, DISPARITY_OFFSET_AXES[p.disparity_offset_model])
         if found is not None:
             self.offset.add(kf.frame_id, *found)

@@ -64,11 +64,8 @@ def test_inserting_a_robot_changes_no_other_robots_randomness():
 @pytest.fixture(scope="module")
 def quickstart():
     # the ideal world: these bounds are the stack's without sensor and calibration errors
-    # (the realistic world's figures: docs/realism.md); the stack does not estimate a
-    # disparity offset there: in 12 s its estimate for the exact rig stays uncertain
-    # enough to cost ARDEA's map (docs/realism.md, "Known limits")
-    return run("scenarios/quickstart.yaml", ["duration_s=12", "output.recording=false", "output.topdown_png=false", "realism.profile=ideal",
-                                             "slam.vo_disparity_offset_estimation=false"])
+    # (the realistic world's figures: docs/realism.md)
+    return run("scenarios/quickstart.yaml", ["duration_s=12", "output.recording=false", "output.topdown_png=false", "realism.profile=ideal"])
 
 
 def test_sgbm_depth_on_rendered_terrain_under_5_percent(quickstart):

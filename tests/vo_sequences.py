@@ -12,7 +12,7 @@ Only the tests see these poses; ``slam.vo`` gets the images.
 
 from __future__ import annotations  # noqa: I001  (sim before mujoco: it sets MUJOCO_GL)
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import sim  # noqa: F401  (sets MUJOCO_GL before mujoco is imported)
 import numpy as np
@@ -36,6 +36,7 @@ class StereoSequence:
     left: list[np.ndarray]
     right: list[np.ndarray]
     T_world_cam: list[np.ndarray]  # 4x4, left camera (OpenCV axes) in the simulator's world frame
+    depth: list[np.ndarray] = field(default_factory=list)  # true z-depth of the left camera, when rendered
 
     def __len__(self) -> int:
         return len(self.t)
@@ -68,11 +69,13 @@ COPTER = {"name": "copter", "preset": "ardea", "start": {"xy": [-5, -2], "yaw_de
 
 
 def render_sequence(robot: dict, rig_name: str, *, duration_s: float, rate_hz: float = 5.0, skip_s: float = 0.0,
-                    seed: int = 5, terrain: dict | None = None, rig_error: RigError | None = None) -> StereoSequence:
+                    seed: int = 5, terrain: dict | None = None, rig_error: RigError | None = None,
+                    with_depth: bool = False) -> StereoSequence:
     """Drive ``robot`` (a scenario robot dict) for ``skip_s + duration_s`` seconds and
     render its rig ``rig_name`` at ``rate_hz`` after the first ``skip_s`` seconds;
     ``rig_error``: the true cameras differ from the nominal ones the sequence's
-    calibration holds (sim/world/calibration_errors.py)."""
+    calibration holds (sim/world/calibration_errors.py); ``with_depth``: keep the left
+    camera's true depth images too."""
     sc = load_scenario({"name": "vo", "duration_s": skip_s + duration_s + 1, "seed": seed,
                         "terrain": terrain or TERRAIN, "robots": [robot]})
     clear = [(tuple(r.start.xy), 2.0) for r in sc.robots]
@@ -92,11 +95,13 @@ def render_sequence(robot: dict, rig_name: str, *, duration_s: float, rate_hz: f
     try:
         for _ in range(round(duration_s * rate_hz)):
             world.advance(1.0 / rate_hz)
-            frame = renderer.render(world.data)
+            frame = renderer.render(world.data, with_depth=with_depth)
             seq.t.append(float(world.data.time))
             seq.left.append(frame.left)
             seq.right.append(frame.right)
             seq.T_world_cam.append(camera_pose(world.model, world.data, rig.left_camera))
+            if with_depth:
+                seq.depth.append(frame.depth)
     finally:
         renderer.close()
     return seq

@@ -214,7 +214,8 @@ def _evaluate_onboard(run: Run, out: Path, name: str, truth: inputs.TeamTruth, r
     )
     offset = ((filter_section or {}).get("vo") or {}).get("disparity_offset")
     if offset is not None:  # the truth beside the robot's estimate
-        offset["true_px"] = run.calibration_errors[name].rigs[onboard.vo_rig.name].disparity_offset_px(onboard.vo_rig)
+        truth_c = run.calibration_errors[name].rigs[onboard.vo_rig.name].disparity_offset_coefficients_px(onboard.vo_rig)
+        offset["true_px"], offset["true_coefficients_px"] = float(truth_c[1]), truth_c.tolist()
     robot_map, map_plot = _guarded(
         out,
         f"map evaluation of {name}",

@@ -57,11 +57,11 @@ class RigError:
     focal_scale: float = 1.0
     T_cam_error: np.ndarray = field(default_factory=lambda: np.eye(4))
 
-    def disparity_offset_px(self, rig: StereoRig) -> float:
-        """The disparity offset the right camera's yaw causes at the image centre (px): a
-        turn ``θ`` about the camera's y axis moves every right-image point by ``-f θ``, so
-        measured disparities exceed the true ones by ``f θ`` (slam/stereo_offset.py)."""
-        return float(rig.focal_px * self.focal_scale * so3_log(self.R_right)[1])
+    def disparity_offset_coefficients_px(self, rig: StereoRig) -> np.ndarray:
+        """The coefficients ``c = f θ`` (px, (3,)) of the disparity offsets the right
+        camera's rotation ``θ`` causes (slam.stereo.disparity_offset_sensitivity; the second,
+        ``f θy``, is the offset at the image centre), ``f`` the true focal length."""
+        return rig.focal_px * self.focal_scale * so3_log(self.R_right)
 
     def true_vfov_deg(self, rig: StereoRig) -> float:
         """MuJoCo ``fovy`` of the true cameras."""
