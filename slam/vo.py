@@ -71,6 +71,7 @@ from enum import StrEnum
 
 import cv2
 import numpy as np
+from scipy.stats import chi2
 
 from slam.lie import adjoint
 from slam.stereo import (
@@ -103,7 +104,8 @@ class VoFailure(StrEnum):
     DEGENERATE = "degenerate"  # singular information matrix or std above the limits
 
 
-CHI2_3_MEDIAN = 2.366  # the median of a chi-square with 3 degrees of freedom
+#: A point's residual in the two-view adjustment has 3 degrees of freedom (two pixel coordinates, a disparity).
+CHI2_3_MEDIAN = float(chi2.median(3))
 
 #: The coefficients of ``c = f θ`` (slam.stereo_offset) each ``VoParams.disparity_offset_model``
 #: estimates: the right camera's whole rotation, or its yaw alone (roll and pitch held at zero).
@@ -440,7 +442,7 @@ def two_view_disparity_offset(
         g_c[6:] = w_disp * sens.T @ s
         g_p = w_img * np.sum(a * r, axis=1) + w_disp * s
         S = H_cc - (H_cp / H_pp[:, None]).T @ H_cp
-        chi2 = w_img * float(np.sum(r * r)) + w_disp * float(s @ s)  # at this iteration's start
+        chi_square = w_img * float(np.sum(r * r)) + w_disp * float(s @ s)  # at this iteration's start
         try:
             step = np.linalg.solve(S, g_c - H_cp.T @ (g_p / H_pp))
         except np.linalg.LinAlgError:
@@ -449,7 +451,7 @@ def two_view_disparity_offset(
         T = _retract(T, step[:6])
         c = c + step[6:]
     try:
-        info = np.linalg.inv(np.linalg.inv(S)[6:, 6:]) / max(1.0, chi2 / (2 * len(d) - 6 - k))
+        info = np.linalg.inv(np.linalg.inv(S)[6:, 6:]) / max(1.0, chi_square / (2 * len(d) - 6 - k))
     except np.linalg.LinAlgError:
         return None
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(info)) and np.trace(info) > 1e-6 and np.linalg.cond(S) < 1e12):
