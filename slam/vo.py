@@ -159,12 +159,13 @@ class VoParams:
     disparity_offset_model: str = "yaw"  # the right camera's yaw alone or its whole rotation (3 coefficients; slam.stereo_offset)
     disparity_offset_pixel_noise_px: float = 0.1  # the offset's tracks, refined (slam.track_refinement): a floor, see two_view_disparity_offset
     disparity_offset_window_px: int = 21  # their affine patches
+    disparity_offset_max_tracks: int = 48  # at most this many per keyframe, spread over the detection grid (their cost)
 
     def __post_init__(self):
         positive = ("max_features", "grid_cols", "grid_rows", "min_features", "max_point_error_m", "klt_window_px",
                     "klt_fb_max_px", "ransac_threshold_px", "ransac_iterations", "refine_iterations",
                     "inlier_chi2", "min_inliers", "n_keyframes", "pixel_noise_px", "disparity_offset_gate_sigma",
-                    "disparity_offset_pixel_noise_px")
+                    "disparity_offset_pixel_noise_px", "disparity_offset_max_tracks")
         bad = [f"{k}={getattr(self, k)}" for k in positive if not getattr(self, k) > 0]
         if not self.disparity_offset_prior_px >= 0:
             bad.append(f"disparity_offset_prior_px={self.disparity_offset_prior_px} (must be >= 0)")
@@ -622,16 +623,21 @@ class StereoVO:
         if pts is None:
             return np.zeros((0, 2), np.float32)
         pts = pts.reshape(-1, 2)  # strongest first
-        h, w = grey.shape
-        cell = (np.minimum((pts[:, 1] * p.grid_rows / h).astype(int), p.grid_rows - 1) * p.grid_cols
-                + np.minimum((pts[:, 0] * p.grid_cols / w).astype(int), p.grid_cols - 1))
+        keep = np.flatnonzero(self._rank_in_cell(pts) < per_cell)[: p.max_features]
+        return np.ascontiguousarray(pts[keep], dtype=np.float32)
+
+    def _rank_in_cell(self, uv: np.ndarray) -> np.ndarray:
+        """Each point's rank (N,) among the points before it in its cell of the detection
+        grid (``VoParams.grid_cols`` x ``grid_rows`` over the image)."""
+        p = self.params
+        cell = (np.minimum((uv[:, 1] * p.grid_rows / self.calib.height).astype(int), p.grid_rows - 1) * p.grid_cols
+                + np.minimum((uv[:, 0] * p.grid_cols / self.calib.width).astype(int), p.grid_cols - 1))
         order = np.argsort(cell, kind="stable")
         sorted_cells = cell[order]
         first = np.searchsorted(sorted_cells, sorted_cells, side="left")
-        rank = np.empty(len(pts), int)
-        rank[order] = np.arange(len(pts)) - first
-        keep = np.flatnonzero(rank < per_cell)[: p.max_features]
-        return np.ascontiguousarray(pts[keep], dtype=np.float32)
+        rank = np.empty(len(uv), int)
+        rank[order] = np.arange(len(uv)) - first
+        return rank
 
     def _points_from_depth(self, uv: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """3D points at integer corners from a dense z-depth (as it came: no disparity offset
@@ -793,9 +799,11 @@ class StereoVO:
         if self.offset is None or kf.disparity is None:
             return
         p = self.params
-        uv0 = kf.uv[m.inlier_ids]
-        uv1, refined = refine_tracks_affine(kf.image, grey, uv0, m.inlier_uv, p.disparity_offset_window_px)
-        found = two_view_disparity_offset(m.T, uv0[refined], kf.disparity[m.inlier_ids][refined], uv1[refined], self.calib,
+        sel = np.argsort(self._rank_in_cell(m.inlier_uv), kind="stable")[: p.disparity_offset_max_tracks]  # one per cell in turn
+        ids = m.inlier_ids[sel]
+        uv0 = kf.uv[ids]
+        uv1, refined = refine_tracks_affine(kf.image, grey, uv0, m.inlier_uv[sel], p.disparity_offset_window_px)
+        found = two_view_disparity_offset(m.T, uv0[refined], kf.disparity[ids][refined], uv1[refined], self.calib,
                                           p.disparity_offset_pixel_noise_px, DISPARITY_OFFSET_AXES[p.disparity_offset_model])
         if found is not None:
             self.offset.add(kf.frame_id, *found)
