@@ -60,6 +60,24 @@ def test_yaw_drift_shows_in_yaw_error_and_rpe():
     assert errors.yaw_deg[-1] == pytest.approx(10, abs=1e-6)
 
 
+def test_an_exact_estimate_between_truth_samples_scores_no_error():
+    """Poses logged between two ground-truth samples (the filter runs behind the physics)
+    are scored against the truth at their own time: on a turning robot the nearest
+    sample would be off by the turn since."""
+    t, gt = circle(n=601)  # truth every 0.1 s, turning at 3 deg/s
+    t_est = t[:-1] + 0.07  # the estimate 30 ms before the next truth sample, exact
+    _, est = circle(n=601)
+    a = t_est / 60 * math.pi
+    est = est[:-1]
+    est[:, 0, 3], est[:, 1, 3] = 5.0 * np.sin(a), 5.0 * (1 - np.cos(a))
+    est[:, 0, 0], est[:, 0, 1], est[:, 1, 0], est[:, 1, 1] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
+    m, errors = trajectory_metrics(Trajectory(t_est, est), Trajectory(t, gt), max_time_diff=0.05)
+    assert m["poses"] == 600 and np.array_equal(errors.t, t_est)
+    assert m["ate_m"]["max"] < 1e-4 and abs(m["yaw_error_deg"]["max_abs"]) < 1e-6  # chord of a 0.1 s arc: 0.02 mm
+    far = Trajectory(t_est + 0.1, est)  # beyond max_time_diff of every truth sample at the end: dropped
+    assert trajectory_metrics(far, Trajectory(t, gt), max_time_diff=0.05)[0]["poses"] == 599
+
+
 def test_statistics_are_named_by_their_type_in_the_order_asked():
     values = [3.0, 1.0, 2.0, 4.0]
     s = statistics(values, (StatisticsType.RMSE, StatisticsType.MEDIAN, StatisticsType.P90, StatisticsType.FINAL))

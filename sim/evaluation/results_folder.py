@@ -118,6 +118,7 @@ class FilterPlot:
 
     error_over_time: ErrorOverTime | None  # None when its trajectory could not be evaluated
     nees: np.ndarray  # NEES of roll, pitch and body velocity per logged estimate
+    t: np.ndarray  # the logged estimates' times
 
 
 @dataclass(frozen=True, eq=False)
@@ -312,7 +313,7 @@ def _filter_section(
     section["vo"] = {**filt.vo, "rejected_by_gate": filt.vo["rejections_by_reason"].get("gate", 0), "deltas_against_truth": filt.vo_deltas}
     section["zero_velocity"] = {**filt.rest, **_rest_against_truth(filt.rest["intervals"], truth)}
     section["frame_switches"] = filt.frame_switches
-    return section, FilterPlot(error_over_time, nees)
+    return section, FilterPlot(error_over_time, nees, est.t)
 
 
 def _rest_against_truth(intervals: list[list[float]], truth: trajectory.Trajectory, moving_mps: float = 0.01) -> dict[str, Any]:
@@ -346,7 +347,7 @@ def plot_filter_errors(robots_metrics: dict[str, Any], plots: dict[str, FilterPl
         ax_p.plot(series.t, series.position_m, label=label)
         ax_y.plot(series.t, series.yaw_deg, label=name)
         nees = f["nees_roll_pitch_velocity"]
-        ax_n.plot(series.t[: len(plot.nees)], plot.nees, lw=0.6, label=f"{name}: mean {nees['mean']:.1f}")
+        ax_n.plot(plot.t, plot.nees, lw=0.6, label=f"{name}: mean {nees['mean']:.1f}")
     if robots_metrics:
         any_nees = next(
             (f["nees_roll_pitch_velocity"] for m in robots_metrics.values() if (f := m.get("filter")) and "nees_roll_pitch_velocity" in f),

@@ -20,7 +20,7 @@ import numpy as np
 from evo.core import metrics, sync
 from evo.core.trajectory import PoseTrajectory3D
 from evo.core.units import Unit
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from sim.evaluation.statistics import StatisticsType, statistics
 from slam.lie import quat_to_rot, se3, wrap_angle, yaw_of
@@ -85,6 +85,24 @@ class Trajectory:
         """The trajectory from its first sample at or after ``t0``."""
         first = int(np.searchsorted(self.t, t0 - 1e-9))
         return Trajectory(self.t[first:], self.T[first:], None if self.quat_xyzw is None else self.quat_xyzw[first:])
+
+    def interpolated(self, times: np.ndarray, max_gap: float) -> Trajectory:
+        """The poses at those of ``times`` whose nearest sample is at most ``max_gap``
+        away, between the two samples around each: positions linearly, rotations by slerp
+        (a pose logged between two ground-truth samples is scored against the truth at its
+        own time, not at the nearest sample's)."""
+        times = np.asarray(times, dtype=float)
+        if len(self) < 2:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        right = np.clip(np.searchsorted(self.t, times), 1, len(self.t) - 1)
+        nearest = np.minimum(np.abs(self.t[right] - times), np.abs(times - self.t[right - 1]))
+        keep = (times >= self.t[0]) & (times <= self.t[-1]) & (nearest <= max_gap)
+        t = times[keep]
+        T = np.tile(np.eye(4), (len(t), 1, 1))
+        if len(t):
+            T[:, :3, :3] = Slerp(self.t, Rotation.from_matrix(self.T[:, :3, :3]))(t).as_matrix()
+            T[:, :3, 3] = np.stack([np.interp(t, self.t, self.T[:, k, 3]) for k in range(3)], axis=1)
+        return Trajectory(t, T)
 
     def at(self, t: float) -> np.ndarray:
         """The pose at the first sample at or after ``t`` (the last one after the end;
@@ -168,7 +186,11 @@ def _evo(trajectory: Trajectory) -> PoseTrajectory3D:
 
 def trajectory_metrics(estimate: Trajectory, truth: Trajectory, max_time_diff: float = 0.011) -> tuple[dict[str, float | dict], ErrorOverTime]:
     """Compare an estimated trajectory with ground truth in the same frame: the metrics
-    and the errors over time."""
+    and the errors over time. The truth is interpolated to the estimate's times
+    (:meth:`Trajectory.interpolated`, within ``max_time_diff`` of a truth sample)."""
+    truth = truth.interpolated(estimate.t, max_time_diff)
+    if len(truth) < 2:
+        raise EvaluationError(f"only {len(truth)} estimated poses within {max_time_diff} s of the truth")
     ref, est = _evo(truth), _evo(estimate)
     try:
         ref, est = sync.associate_trajectories(ref, est, max_diff=max_time_diff)

@@ -611,7 +611,7 @@ class Run:
                 if self.recorder is not None:
                     self.recorder.log_pose(robot.name, now, pos, quat)
                 if onboard is not None and not robot.dead:
-                    onboard.record(now, runtime.recent_truth)
+                    onboard.record(runtime.recent_truth)
                 if runtime.dataset is not None:
                     runtime.dataset.truth(now, pos, quat, robot.velocity()[0], runtime.imu.gyro_bias, runtime.imu.accel_bias)
             if robot.dead:  # its sensors and computer are off; the truth goes on
