@@ -114,6 +114,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from slam.lie import adjoint, euler_zyx, euler_zyx_jacobian, euler_zyx_jacobian_inv, rot_z, rot_zyx, se3, skew, so3_exp, so3_exp_batch, so3_log
+from slam.strapdown import strapdown_step
 
 CORE = 15  # [dp, dv, dtheta, db_a, db_w]
 MISALIGNMENT = 2  # consider [k_x, k_y]: the accelerometer's z-axis misalignment, when modelled
@@ -582,18 +583,11 @@ class LocalReferenceFilter:
             self._f_prev, self._w_prev = f1, w1
             return
         f0, w0 = self._f_prev, self._w_prev
-        ba, g = self._ba, self._g
-        E = so3_exp((0.5 * dt) * (0.5 * (w0 + w1) - self._bw))
-        R0 = self._R
-        Rh = R0 @ E
-        R1 = Rh @ E
-        fh_local = Rh @ (0.5 * (f0 + f1) - ba)
-        a0 = R0 @ (f0 - ba) + g
-        ah = fh_local + g
-        a1 = R1 @ (f1 - ba) + g
-        v0 = self._v
-        self._p = self._p + dt * v0 + (dt * dt / 6.0) * (a0 + 2.0 * ah)
-        self._v = v0 + (dt / 6.0) * (a0 + 4.0 * ah + a1)
+        gyro_scale_q = 2.0 * self.params.gyro_scale_std**2 * self.params.gyro_scale_correlation_s
+        R1, self._p, self._v = strapdown_step(
+            self._R, self._p, self._v, f0, f1, w0, w1, self._ba, self._bw, self._g, dt, self._Phi, self._W,
+            self._phi_p_scale, self._phi_v_scale, self._k.start, self._k.stop - self._k.start,
+            self._Pbuf, self._base, self._dim, self._process_noise(dt), gyro_scale_q)
         self._steps += 1
         if self._steps % _ORTHONORMALIZE_EVERY == 0:
             U, _, Vt = np.linalg.svd(R1)
@@ -601,35 +595,6 @@ class LocalReferenceFilter:
         self._R = R1
         self._t = t
         self._f_prev, self._w_prev, self._dt_last = f1, w1, dt
-
-        # error transition (linearised at the interval midpoint): the 6x9 block of Phi
-        # from [dtheta, db_a, db_w] to [dp, dv] is W = [A, R dt, A R dt] scaled per column
-        W = self._W
-        W[:, 0:3] = skew(fh_local * dt)  # A = [R f]x dt
-        W[:, 3:6] = Rh * dt
-        W[:, 6:9] = W[:, 0:3] @ W[:, 3:6]
-        Phi = self._Phi
-        Phi[0, 3] = Phi[1, 4] = Phi[2, 5] = dt
-        Phi[_P, 6:15] = W * (dt * self._phi_p_scale)
-        Phi[_V, 6:15] = W * self._phi_v_scale
-        Phi[_TH, _BW] = -W[:, 3:6]
-        b = self._base
-        if self._k.stop > CORE:  # k: the z axis senses k . f_xy, entering like the bias's z component
-            f_xy = 0.5 * (f0[:2] + f1[:2]) - ba[:2]
-            Phi[_P, self._k] = np.outer(Phi[_P, 11], f_xy)
-            Phi[_V, self._k] = np.outer(Phi[_V, 11], f_xy)
-        P = self._Pbuf
-        P[:b, :b] = Phi @ P[:b, :b] @ Phi.T
-        P[:CORE, :CORE] += self._process_noise(dt)
-        if self.params.gyro_scale_std > 0.0:  # unmodelled scale and misalignment: grows with the rate
-            rate = 0.5 * (w0 + w1) - self._bw
-            q = self.params.gyro_scale_std**2 * float(rate @ rate) * 2.0 * self.params.gyro_scale_correlation_s * dt
-            P[_TH, _TH] += q * np.eye(3)
-        d = self._dim
-        if d > b:
-            X = Phi @ P[:b, b:d]
-            P[:b, b:d] = X
-            P[b:d, :b] = X.T
 
     def _process_noise(self, dt: float) -> np.ndarray:
         """``Qd = dt Q1 + dt^2 Q2 + dt^3 Q3``, cached for the IMU interval rounded to 1 ns (a

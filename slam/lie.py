@@ -9,13 +9,16 @@ perturb on the right, ``T_true = T Exp(xi)``. Quaternions are (w, x, y, z), MuJo
 order.
 
 ``so3_exp`` is written with plain floats because the filter calls it once per IMU
-sample; everything else is called at update rate.
+sample; everything else is called at update rate. ``so3_exp_compiled`` and
+``skew_compiled`` are the same functions compiled by numba, for numba kernels
+(slam/strapdown.py).
 """
 
 from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -50,6 +53,10 @@ def so3_exp(phi) -> np.ndarray:
             [bxz - a * y, byz + a * x, 1.0 - b * (x * x + y * y)],
         ]
     )
+
+
+so3_exp_compiled = numba.njit(cache=True, nogil=True)(so3_exp)
+skew_compiled = numba.njit(cache=True, nogil=True)(skew)
 
 
 def so3_exp_batch(phi: np.ndarray) -> np.ndarray:
