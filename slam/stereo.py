@@ -266,7 +266,10 @@ def remove_disparity_offset(depth, calibration: StereoCalibration, coefficients_
         u, v = np.asarray(uv)[:, 0], np.asarray(uv)[:, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         disparity = calibration.fb / depth
-        offset = disparity_offset_sensitivity(u, v, np.where(np.isfinite(disparity), disparity, 0.0), calibration) @ c
+        # s · c written out (the sensitivity's three components, without stacking them per pixel)
+        x = (u - np.where(np.isfinite(disparity), disparity, 0.0) - calibration.cx) / calibration.focal_px
+        y = (v - calibration.cy) / calibration.focal_px
+        offset = c[1] * (1.0 + x * x) - y * (c[0] * x + c[2])
         return disparity_to_depth((disparity - offset).astype(depth.dtype), calibration)
 
 
