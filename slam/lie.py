@@ -1,12 +1,12 @@
 """SO(3) / SE(3) helpers: the one home of the project's rigid-body geometry.
 
-Pure numpy (and scipy's ``Rotation`` for the logarithm and quaternions). Rotation
-matrices map body coordinates into the parent frame (``x_parent = R @ x_body``). Euler
-angles are ZYX (yaw about z, then pitch about the new y, then roll about the new x):
-``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``, the roll/pitch/yaw of a gravity-aligned frame
-with z up (thesis 4.1.2). 6D tangent vectors are ordered [rotation, translation] and
-perturb on the right, ``T_true = T Exp(xi)``. Quaternions are (w, x, y, z), MuJoCo's
-order.
+Pure numpy (scipy's ``Rotation`` for the logarithm and quaternions, numba for the
+compiled copies below). Rotation matrices map body coordinates into the parent frame
+(``x_parent = R @ x_body``). Euler angles are ZYX (yaw about z, then pitch about the new
+y, then roll about the new x): ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``, the
+roll/pitch/yaw of a gravity-aligned frame with z up (thesis 4.1.2). 6D tangent vectors
+are ordered [rotation, translation] and perturb on the right, ``T_true = T Exp(xi)``.
+Quaternions are (w, x, y, z), MuJoCo's order.
 
 ``so3_exp`` is written with plain floats because the filter calls it once per IMU
 sample; everything else is called at update rate. ``so3_exp_compiled`` and
