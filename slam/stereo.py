@@ -291,6 +291,25 @@ def depth_to_points(depth: np.ndarray, calibration: StereoCalibration) -> np.nda
     return out
 
 
+def depth_to_points_at(depth: np.ndarray, mask: np.ndarray, calibration: StereoCalibration) -> np.ndarray:
+    """``depth_to_points(depth, calibration)[mask]``, points (N, 3) of the pixels in ``mask``
+    (H, W, row-major order) alone, without the whole image's: the same values bit for bit."""
+    depth = np.asarray(depth)
+    if depth.ndim != 2 or np.shape(mask) != depth.shape:
+        raise StereoException(f"need a 2-D depth and a mask of its shape, got {depth.shape} and {np.shape(mask)}")
+    rows, cols = np.nonzero(mask)
+    z = depth[rows, cols]
+    dtype = depth.dtype if np.issubdtype(depth.dtype, np.floating) else np.float64
+    u = (np.arange(depth.shape[1], dtype=dtype) - dtype.type(calibration.cx)) / dtype.type(calibration.focal_px)
+    v = (np.arange(depth.shape[0], dtype=dtype) - dtype.type(calibration.cy)) / dtype.type(calibration.focal_px)
+    out = np.empty((len(z), 3), dtype=dtype)
+    out[:, 2] = z
+    with np.errstate(invalid="ignore"):
+        out[:, 0] = z * u[cols]
+        out[:, 1] = z * v[rows]
+    return out
+
+
 def triangulate(
     u_left: np.ndarray, v_left: np.ndarray, u_right: np.ndarray, v_right: np.ndarray, calibration: StereoCalibration
 ) -> np.ndarray:

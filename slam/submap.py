@@ -60,7 +60,7 @@ from functools import cached_property
 import numba
 import numpy as np
 
-from slam.stereo import StereoCalibration, cut_far_points, depth_to_points
+from slam.stereo import StereoCalibration, cut_far_points, depth_to_points_at
 from slam.voxels import VoxelException, VoxelGrid
 
 _BITS = 21  # per axis in a packed voxel key: +-2^20 voxels, +-52 km at 5 cm
@@ -546,7 +546,7 @@ class SubmapBuilder:
         cut = cut_far_points(depth, self.calibration, p.max_depth_error_m, p.pixel_error)
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(cut) & (cut > 0)
-        points = depth_to_points(cut, self.calibration)[valid].astype(float) @ T[:3, :3].T + T[:3, 3]
+        points = depth_to_points_at(cut, valid, self.calibration).astype(float) @ T[:3, :3].T + T[:3, 3]
         image = VoxelSums.of_points(points, obstacle[valid], intensity[valid], p.point_resolution_m, classified=classified[valid])
         a = self._active
         a.cloud = a.cloud.merged(image)

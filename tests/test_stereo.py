@@ -16,6 +16,7 @@ from slam.stereo import (
     cut_far_points,
     depth_error,
     depth_to_points,
+    depth_to_points_at,
     disparity_to_depth,
     distance_error,
     max_depth_for_error,
@@ -76,6 +77,22 @@ def test_disparity_depth_points_roundtrip():
     vv, uu = np.nonzero(ok)
     np.testing.assert_allclose(u, uu, atol=1e-3)  # OpenCV frame: x right, y down, z forward
     np.testing.assert_allclose(v, vv, atol=1e-3)
+
+
+def test_points_of_a_mask_equal_the_masked_image_of_points():
+    """``depth_to_points_at`` back-projects only the masked pixels, to the same values bit
+    for bit (float32 and float64 depths, NaN and inf kept); a mask of another shape is refused."""
+    rng = np.random.default_rng(3)
+    for dtype in (np.float32, np.float64):
+        depth = rng.uniform(0.3, 9.0, (CAL.height, CAL.width)).astype(dtype)
+        depth[rng.random(depth.shape) < 0.1] = np.nan
+        depth[rng.random(depth.shape) < 0.05] = np.inf
+        mask = rng.random(depth.shape) < 0.4
+        at = depth_to_points_at(depth, mask, CAL)
+        assert at.dtype == dtype and at.shape == (mask.sum(), 3)
+        np.testing.assert_array_equal(at, depth_to_points(depth, CAL)[mask])
+    with pytest.raises(StereoException):
+        depth_to_points_at(depth, mask[:, 1:], CAL)
 
 
 def test_sgbm_recovers_a_known_shift():

@@ -21,7 +21,7 @@ import numpy as np
 from sim.evaluation.map_quality import MapQualityParams, ObstacleScore, score_obstacles
 from sim.world.terrain import Terrain
 from slam.obstacles import ObstacleParams, classified_pixels
-from slam.stereo import StereoCalibration, depth_to_points
+from slam.stereo import StereoCalibration, depth_to_points_at
 
 _OFFSET = 1 << 30  # cell indices are shifted by this into non-negative 31-bit halves of one key
 _COMPACT_EVERY = 64  # images between merges of the collected keys
@@ -53,7 +53,7 @@ class MappedImage:
 
 def world_xy(depth: np.ndarray, pixels: np.ndarray, calibration: StereoCalibration, T_world_cam: np.ndarray) -> np.ndarray:
     """World xy (n, 2) of the points of ``depth`` at the ``pixels`` mask."""
-    cam = depth_to_points(depth, calibration)[pixels].astype(float)
+    cam = depth_to_points_at(depth, pixels, calibration).astype(float)
     return (cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3])[:, :2]
 
 
