@@ -239,10 +239,24 @@ def disparity_offset_sensitivity(u, v, disparity, calibration: StereoCalibration
     normalised: a yaw offsets every disparity, most at the image's sides, a roll tilts the
     offset from top to bottom row, a pitch twists it. ``u, v, disparity``: the left pixels
     and their measured disparities, broadcast together."""
+    x, y = np.broadcast_arrays(*_right_normalised(u, v, disparity, calibration))
+    return np.stack([-x * y, 1.0 + x * x, -y], axis=-1)
+
+
+def disparity_offset(u, v, disparity, calibration: StereoCalibration, coefficients_px) -> np.ndarray:
+    """The offset ``s · c`` (px) of each measured disparity, :func:`disparity_offset_sensitivity`
+    contracted with the coefficients ``c`` (3,) term by term, without the per-pixel stack
+    of sensitivities (a depth image's worth of them is the cost)."""
+    x, y = _right_normalised(u, v, disparity, calibration)
+    c = coefficients_px
+    return c[1] * (1.0 + x * x) - y * (c[0] * x + c[2])
+
+
+def _right_normalised(u, v, disparity, calibration: StereoCalibration) -> tuple[np.ndarray, np.ndarray]:
+    """The normalised coordinates ``(x, y)`` of the right pixel ``(u - d, v)`` of left pixels and their disparities."""
     x = (np.asarray(u, dtype=float) - np.asarray(disparity, dtype=float) - calibration.cx) / calibration.focal_px
     y = (np.asarray(v, dtype=float) - calibration.cy) / calibration.focal_px
-    x, y = np.broadcast_arrays(x, y)
-    return np.stack([-x * y, 1.0 + x * x, -y], axis=-1)
+    return x, y
 
 
 def remove_disparity_offset(depth, calibration: StereoCalibration, coefficients_px, uv: np.ndarray | None = None):
@@ -266,10 +280,7 @@ def remove_disparity_offset(depth, calibration: StereoCalibration, coefficients_
         u, v = np.asarray(uv)[:, 0], np.asarray(uv)[:, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         disparity = calibration.fb / depth
-        # s · c written out (the sensitivity's three components, without stacking them per pixel)
-        x = (u - np.where(np.isfinite(disparity), disparity, 0.0) - calibration.cx) / calibration.focal_px
-        y = (v - calibration.cy) / calibration.focal_px
-        offset = c[1] * (1.0 + x * x) - y * (c[0] * x + c[2])
+        offset = disparity_offset(u, v, np.where(np.isfinite(disparity), disparity, 0.0), calibration, c)
         return disparity_to_depth((disparity - offset).astype(depth.dtype), calibration)
 
 
@@ -280,15 +291,23 @@ def depth_to_points(depth: np.ndarray, calibration: StereoCalibration) -> np.nda
     if depth.ndim != 2:
         raise StereoException(f"depth must be a 2-D image, got shape {depth.shape}")
     h, w = depth.shape
-    dtype = depth.dtype if np.issubdtype(depth.dtype, np.floating) else np.float64
-    u = (np.arange(w, dtype=dtype) - dtype.type(calibration.cx)) / dtype.type(calibration.focal_px)
-    v = (np.arange(h, dtype=dtype) - dtype.type(calibration.cy)) / dtype.type(calibration.focal_px)
+    u, v, dtype = _normalised_grid(depth, calibration)
     out = np.empty((h, w, 3), dtype=dtype)
     out[..., 2] = depth
     with np.errstate(invalid="ignore"):
         out[..., 0] = depth * u[None, :]
         out[..., 1] = depth * v[:, None]
     return out
+
+
+def _normalised_grid(depth: np.ndarray, calibration: StereoCalibration) -> tuple[np.ndarray, np.ndarray, np.dtype]:
+    """The normalised coordinates of a depth image's columns (W,) and rows (H,) in the
+    depth's float dtype (float64 for an integer depth), and that dtype."""
+    dtype = depth.dtype if np.issubdtype(depth.dtype, np.floating) else np.dtype(np.float64)
+    f = dtype.type(calibration.focal_px)
+    u = (np.arange(depth.shape[1], dtype=dtype) - dtype.type(calibration.cx)) / f
+    v = (np.arange(depth.shape[0], dtype=dtype) - dtype.type(calibration.cy)) / f
+    return u, v, dtype
 
 
 def depth_to_points_at(depth: np.ndarray, mask: np.ndarray, calibration: StereoCalibration) -> np.ndarray:
@@ -299,9 +318,7 @@ def depth_to_points_at(depth: np.ndarray, mask: np.ndarray, calibration: StereoC
         raise StereoException(f"need a 2-D depth and a mask of its shape, got {depth.shape} and {np.shape(mask)}")
     rows, cols = np.nonzero(mask)
     z = depth[rows, cols]
-    dtype = depth.dtype if np.issubdtype(depth.dtype, np.floating) else np.float64
-    u = (np.arange(depth.shape[1], dtype=dtype) - dtype.type(calibration.cx)) / dtype.type(calibration.focal_px)
-    v = (np.arange(depth.shape[0], dtype=dtype) - dtype.type(calibration.cy)) / dtype.type(calibration.focal_px)
+    u, v, dtype = _normalised_grid(depth, calibration)
     out = np.empty((len(z), 3), dtype=dtype)
     out[:, 2] = z
     with np.errstate(invalid="ignore"):

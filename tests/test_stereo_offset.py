@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slam.lie import so3_exp
-from slam.stereo import StereoCalibration, StereoException, disparity_offset_sensitivity, remove_disparity_offset
+from slam.stereo import StereoCalibration, StereoException, disparity_offset, disparity_offset_sensitivity, remove_disparity_offset
 from slam.stereo_offset import DisparityOffsetEstimate, StereoOffsetException
 
 TRUTH = np.array([0.1, 0.3, -0.2])
@@ -99,6 +99,9 @@ def test_sensitivity_is_the_rotated_cameras_disparity_change():
         d = u - (f * P[:, 0] / P[:, 2] + CALIB.cx)
         predicted = disparity_offset_sensitivity(u, v, d, CALIB) @ (f * theta)
         np.testing.assert_allclose(d - d_true, predicted, atol=0.01 * np.abs(predicted).max())
+    c = np.array([0.3, -0.2, 0.5])  # the offset written out term by term is the same contraction
+    np.testing.assert_allclose(disparity_offset(u, v, d_true, CALIB, c), disparity_offset_sensitivity(u, v, d_true, CALIB) @ c,
+                               rtol=1e-12, atol=1e-12)
 
 
 def test_removing_the_offsets_from_a_depth():
