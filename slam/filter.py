@@ -442,7 +442,7 @@ class LocalReferenceFilter:
         """Constant parts of the covariance prediction (thesis 4.1.1: the continuous-time
         error model of Schmid et al. 2014a, module docstring): the discrete process noise
         ``Qd = dt Q1 + dt^2 Q2 + dt^3 Q3`` (isotropic densities, so independent of the
-        attitude), and the transition matrix ``Phi`` with its work buffer and column scales."""
+        attitude), and the transition matrix ``Phi`` (a buffer the step per sample writes its blocks into) and its column scales."""
         params = self.params
         sa2, sg2 = params.accel_noise_density**2, params.gyro_noise_density**2
         I3 = np.eye(3)
@@ -456,7 +456,6 @@ class LocalReferenceFilter:
         self._Q3 = np.zeros((CORE, CORE))
         self._Q3[_P, _P] = sa2 / 3.0 * I3
         self._Phi = np.eye(self._base)
-        self._W = np.zeros((3, 9))
         self._phi_p_scale = np.repeat([-0.5, -0.5, 1.0 / 6.0], 3)  # times dt: Phi = I + F dt + F^2 dt^2/2 + F^3 dt^3/6
         self._phi_v_scale = np.repeat([-1.0, -1.0, 0.5], 3)
         self._q_key = math.nan
@@ -585,7 +584,7 @@ class LocalReferenceFilter:
         f0, w0 = self._f_prev, self._w_prev
         gyro_scale_q = 2.0 * self.params.gyro_scale_std**2 * self.params.gyro_scale_correlation_s
         R1, self._p, self._v = strapdown_step(
-            self._R, self._p, self._v, f0, f1, w0, w1, self._ba, self._bw, self._g, dt, self._Phi, self._W,
+            self._R, self._p, self._v, f0, f1, w0, w1, self._ba, self._bw, self._g, dt, self._Phi,
             self._phi_p_scale, self._phi_v_scale, self._k.start, self._k.stop - self._k.start,
             self._Pbuf, self._base, self._dim, self._process_noise(dt), gyro_scale_q)
         self._steps += 1

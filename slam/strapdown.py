@@ -21,13 +21,13 @@ from slam.lie import skew_compiled, so3_exp_compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def strapdown_step(R0, p, v, f0, f1, w0, w1, ba, bw, g, dt, Phi, W, phi_p_scale, phi_v_scale, k0, nk,
+def strapdown_step(R0, p, v, f0, f1, w0, w1, ba, bw, g, dt, Phi, phi_p_scale, phi_v_scale, k0, nk,
                    P, base, dim, Qd, gyro_scale_q):
     """One IMU interval ``dt`` from the samples ``(f0, w0)`` to ``(f1, w1)``: returns the
     attitude ``R1``, position and velocity at its end; ``P`` (the filter's covariance
     buffer, its first ``dim`` rows and columns in use, the clones from ``base`` on) is
     propagated in place, ``Phi`` (base x base, identity outside the blocks written here)
-    and ``W`` (3 x 9) are work buffers. The error state's layout is slam/filter.py's:
+    is a work buffer. The error state's layout is slam/filter.py's:
     ``[dp, dv, dtheta, db_a, db_w]`` (the core, ``Qd``'s size), then consider parameters,
     of which ``nk`` from column ``k0`` are the accelerometer's z-axis misalignment (the z
     axis senses ``k . f_xy``, entering like the bias's z component);
@@ -47,15 +47,13 @@ def strapdown_step(R0, p, v, f0, f1, w0, w1, ba, bw, g, dt, Phi, W, phi_p_scale,
     # from [dtheta, db_a, db_w] to [dp, dv] is W = [A, R dt, A R dt] scaled per column
     A = skew_compiled(fh_local * dt)  # [R f]x dt
     Rdt = Rh * dt
-    W[:, 0:3] = A
-    W[:, 3:6] = Rdt
-    W[:, 6:9] = A @ Rdt
+    ARdt = A @ Rdt
     for i in range(3):
         Phi[i, 3 + i] = dt
-        for j in range(9):
-            Phi[i, 6 + j] = W[i, j] * (dt * phi_p_scale[j])
-            Phi[3 + i, 6 + j] = W[i, j] * phi_v_scale[j]
         for j in range(3):
+            for block, Wij in ((0, A[i, j]), (3, Rdt[i, j]), (6, ARdt[i, j])):
+                Phi[i, 6 + block + j] = Wij * (dt * phi_p_scale[block + j])
+                Phi[3 + i, 6 + block + j] = Wij * phi_v_scale[block + j]
             Phi[6 + i, 12 + j] = -Rdt[i, j]
     for c in range(nk):
         f_c = 0.5 * (f0[c] + f1[c]) - ba[c]
