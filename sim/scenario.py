@@ -307,6 +307,15 @@ class CameraConfig(StrictModel):
     width: int = Field(320, ge=32, le=2048, description="image width (px)")
     height: int = Field(240, ge=32, le=2048, description="image height (px)")
     rate_hz: float = Field(5.0, gt=0, le=30, description="stereo frame rate; must divide physics.control_rate_hz (thesis 7.1: 8 to 14.6 Hz)")
+    trigger_phase: float | None = Field(
+        None,
+        ge=0,
+        lt=1,
+        description=(
+            "when in each frame period the robot's cameras trigger, as a fraction of the period "
+            "(null: robot k of a team of n at k/n: the cameras of separate robots run free, and the image pipeline's work is spread)"
+        ),
+    )
     color: Literal["grey", "rgb"] = Field("grey", description="rendered images: grey (one channel, as the thesis's rovers, 7.1) or rgb")
     hfov_deg: float | None = Field(
         None, gt=10, lt=170, description=f"horizontal field of view (null: the preset's, {_per_preset('default_hfov_deg')})"

@@ -84,3 +84,31 @@ def test_a_run_closes_a_renderer_a_tool_drew_with_on_the_loop_s_thread():
     assert renderer.drawing_thread is None
     with pytest.raises(SensorError, match="closed"):
         renderer.render(run.world.data)
+
+
+@pytest.mark.parametrize("phase", [None, 0.0, 0.3])
+def test_each_robot_s_cameras_trigger_at_its_phase_of_the_frame_period(monkeypatch, phase):
+    """By default robot k of a team of n triggers k/n of a frame period after each period's
+    start; ``camera.trigger_phase`` sets the fraction for all (0: in step). Frames count
+    from 0 at the first trigger."""
+    triggers = []
+    capture = Run._capture
+
+    def record(self, runtime, frame, now):
+        triggers.append((runtime.robot.name, frame, now))
+        return capture(self, runtime, frame, now)
+
+    monkeypatch.setattr(Run, "_capture", record)
+    overrides = ["duration_s=1.25", "slam.enabled=false", "output.recording=false", "output.topdown_png=false"]
+    if phase is not None:
+        overrides.append(f"robots.*.camera.trigger_phase={phase}")
+    run = Run(load_scenario("scenarios/quickstart.yaml", overrides), image_workers=0)
+    run.execute()
+    names = list(run.robots)
+    period = 1.0 / run.scenario.robots[0].camera.rate_hz
+    for k, name in enumerate(names):
+        mine = [(frame, now) for robot, frame, now in triggers if robot == name]
+        offset = period * (k / len(names) if phase is None else phase)
+        assert [frame for frame, _ in mine] == list(range(len(mine))) and len(mine) >= 6
+        # on the last IMU sample at or before it (an IMU sample every one or two control ticks here)
+        assert all(-1e-9 <= offset + frame * period - now < 2 * run.tick_s for frame, now in mine), (name, mine[:3])

@@ -27,6 +27,7 @@ import pytest
 
 from sim.world.markers import tag_dictionary
 from sim.robots import RobotError, make_robot
+from sim.robots.lru import DEFAULT_TILT_DEG
 from sim.robots.base import WheelState
 from sim.robots.route import RouteTracker
 from sim.scenario import RouteConfig, load_scenario
@@ -420,3 +421,32 @@ def test_camera_intrinsics_and_baseline_match_the_rigs():
             expected_px = (K @ pc)[:2] / pc[2]
             got = _red_centroid(_render_with_probe(model, data, cam, world_point, rig.width, rig.height))
             assert np.allclose(got, expected_px, atol=1.0), (name, cam, got, expected_px)
+
+
+class _FixedGaze:
+    def __init__(self, point):
+        self.point = np.asarray(point, float)
+
+    def look_at(self, t):
+        return self.point
+
+
+@pytest.mark.parametrize("point, row", [([-2.0, 3.0, 1.2], 0.25), ([1.6, 0.8, 0.0], None)])
+def test_a_rover_points_its_head_at_its_gaze(point, row):
+    """A standing rover turns its head to the gaze source's point: the point appears on the
+    image's centre column, a quarter of the height below the top (a peer's markers, about
+    head high), or, for a point on the ground nearby, below the centre with the usual tilt."""
+    world = make_world([{"name": "r1", "preset": "lru", "start": {"xy": [0, 0], "yaw_deg": 30}}], FLAT)
+    rover = world.robots[0]
+    ground = float(np.ravel(world.terrain.surface_height_at(point[0], point[1]))[0])
+    rover.gaze_source = _FixedGaze([point[0], point[1], point[2] + ground])
+    world.advance(4.0)
+    rig = rover.stereo_rigs[0]
+    pos, R_world_cam = _camera_frame(world.model, world.data, rig.left_camera)
+    p = R_world_cam.T @ (rover.gaze_source.point - pos)
+    u, v = (rig.intrinsics @ p)[:2] / p[2]
+    assert p[2] > 0 and abs(u - rig.intrinsics[0, 2]) < 0.03 * rig.width
+    if row is not None:
+        assert abs(v - row * rig.height) < 0.05 * rig.height
+    else:
+        assert v > rig.height / 2 and abs(rover.head_angles()[1] - math.radians(DEFAULT_TILT_DEG)) < math.radians(1)

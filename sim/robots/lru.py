@@ -326,8 +326,11 @@ class LRU(Robot):
                     goal = route.target_xy if self.follower is None else self.follower.steer_point(t, estimate, T_odom_body, route.target_xy)
                     v, w = drive_command(xy, yaw, goal, route.cfg.speed_mps, DriveGains())
                     v, w = self._tilt_guard(t, tilt, v, w)
-                    gaze = self._gaze_pan(t, xy, yaw)
-                    self.pan_ref = self._sweep_pan(t) if gaze is None or abs(gaze) > GAZE_MAX_PAN_DRIVING_RAD else gaze
+                    gaze = self._gaze(t, T)
+                    if gaze is None or abs(gaze[0]) > GAZE_MAX_PAN_DRIVING_RAD:
+                        self.pan_ref, self.tilt_ref = self._sweep_pan(t), math.radians(DEFAULT_TILT_DEG)
+                    else:
+                        self.pan_ref, self.tilt_ref = gaze
         if self.phase == "scan":
             self.pan_ref = self._scan_pan(t - self._scan_t0)
             scan_tilt = self.cfg.route.scan_tilt_deg
@@ -337,17 +340,27 @@ class LRU(Robot):
                 self.tilt_ref = math.radians(DEFAULT_TILT_DEG)
                 self._begin_next(t, xy)
         if self.phase in ("wait", "done"):
-            gaze = self._gaze_pan(t, xy, yaw)
+            gaze = self._gaze(t, T)
             if gaze is not None:
-                self.pan_ref = gaze
+                self.pan_ref, self.tilt_ref = gaze
+            else:
+                self.tilt_ref = math.radians(DEFAULT_TILT_DEG)
         self._apply(v, w)
 
-    def _gaze_pan(self, t: float, xy: np.ndarray, yaw: float) -> float | None:
-        """Pan that points the head at :attr:`gaze_source`'s point, from the pose the guidance believes; None if none."""
+    def _gaze(self, t: float, T_world_body: np.ndarray) -> tuple[float, float] | None:
+        """(pan, tilt) that point the head at :attr:`gaze_source`'s point, from the pose the
+        guidance believes, or None if there is none. The tilt puts the point a quarter of
+        the image height below its top edge (a peer's markers sit about as high as the
+        head: level, they would leave the ground in the lower half only), never below the
+        usual ``DEFAULT_TILT_DEG``."""
         target = None if self.gaze_source is None else self.gaze_source.look_at(t)
         if target is None:
             return None
-        return wrap_angle(math.atan2(target[1] - xy[1], target[0] - xy[0]) - yaw)
+        head = np.array([MAST_XY[0], MAST_XY[1], PAN_HEIGHT_M + TILT_OFFSET_M])
+        v = T_world_body[:3, :3].T @ (np.asarray(target, float) - T_world_body[:3, 3]) - head
+        rig = self.stereo_rigs[0]
+        down = math.atan2(-v[2], math.hypot(v[0], v[1])) + math.atan2(rig.height / 4, rig.focal_px)
+        return math.atan2(v[1], v[0]), min(down, math.radians(DEFAULT_TILT_DEG))
 
     def _tilt_guard(self, t: float, tilt: float, v: float, w: float) -> tuple[float, float]:
         """Never drive on into a slope that would tip the rover: beyond ``TILT_GUARD_RAD``

@@ -65,7 +65,7 @@ class GazeSource(Protocol):
     observation, slam/navigation/observation.py)."""
 
     def look_at(self, t: float) -> np.ndarray | None:
-        """A point (mission frame, as believed) to point the cameras at now, or None."""
+        """A 3D point (mission frame, as believed) to point the cameras at now, or None."""
 
 
 class PathFollower:

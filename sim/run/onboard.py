@@ -483,26 +483,38 @@ class OnboardStack:
         return False
 
     def look_at(self, t: float) -> np.ndarray | None:
-        """The peer to point the head at now (slam/navigation/observation.py; mission frame,
-        as believed), or None; chosen again every ``GAZE_PERIOD_S``."""
+        """The point to point the head at now (slam/navigation/observation.py; mission frame,
+        as believed): the centre of the chosen peer's markers, or None; chosen again every
+        ``GAZE_PERIOD_S``."""
         if self._gaze is not None and t < self._gaze[0] + GAZE_PERIOD_S:
             return self._gaze[1]
         T = self._believed_pose()
         found = None
         if T is not None:
-            peers = {p: xy for p in self.agent.peers if (xy := self._peer_position(p, t)) is not None}
-            last = {p: self.agent.last_detection_t(p) for p in peers}
+            poses = {p: T_peer for p in self.agent.peers if (T_peer := self._peer_pose(p, t)) is not None}
+            last = {p: self.agent.last_detection_t(p) for p in poses}
             params = self.explorer.params
-            found = peer_to_observe(T[:2, 3], peers, last, t, params.observe_range_m, params.observe_interval_s)
+            found = peer_to_observe(T[:2, 3], {p: T_peer[:2, 3] for p, T_peer in poses.items()}, last, t, params.observe_range_m,
+                                    params.observe_interval_s)
         if found is not None and (self._gaze is None or self._gaze[1] is None):
             self.observations.append((t, found[0]))
-        self._gaze = (t, None if found is None else found[1])
+        if found is None:
+            self._gaze = (t, None)
+        else:
+            T_peer = poses[found[0]]
+            self._gaze = (t, T_peer[:3, :3] @ self._marker_centre(found[0]) + T_peer[:3, 3])
         return self._gaze[1]
 
-    def _peer_position(self, peer: str, t: float) -> np.ndarray | None:
-        """Where this robot believes ``peer`` is (mission frame): its latest periodic estimate
-        on this robot's graph, or, until the graph connects them, in the peer's odometry frame
-        on its deployment; None without an estimate of the last ``PEER_ESTIMATE_MAX_AGE_S``."""
+    def _marker_centre(self, peer: str) -> np.ndarray:
+        """The mean position of ``peer``'s markers on its body (its body origin if it has none)."""
+        centres = [m.T_body_marker[:3, 3] for m in self.agent.markers.values() if m.robot == peer]
+        return np.mean(centres, axis=0) if centres else np.zeros(3)
+
+    def _peer_pose(self, peer: str, t: float) -> np.ndarray | None:
+        """Where this robot believes ``peer`` is (``T_world_body``, mission frame): its latest
+        periodic estimate on this robot's graph, or, until the graph connects them, in the
+        peer's odometry frame on its deployment; None without an estimate of the last
+        ``PEER_ESTIMATE_MAX_AGE_S``."""
         belief = self.agent.belief(peer)
         if belief is not None:
             t_estimate, T = belief
@@ -513,7 +525,7 @@ class OnboardStack:
                 return None
             t_estimate, T = odometry
             T_world = self._deployments[peer] @ T
-        return T_world[:2, 3] if t - t_estimate <= PEER_ESTIMATE_MAX_AGE_S else None
+        return T_world if t - t_estimate <= PEER_ESTIMATE_MAX_AGE_S else None
 
     def _believed_pose(self) -> np.ndarray | None:
         """``T_world_body`` as the robot believes (its online SLAM pose in the mission frame)."""

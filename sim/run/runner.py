@@ -175,6 +175,7 @@ class RobotRuntime:
     inertial: InertialAverager
     imu_every: int
     camera_every: int
+    camera_phase: int  # control ticks from a period's start to the cameras' trigger (Run._camera_phase)
     renderers: list[StereoRenderer]
     workers: list[int]  # the image pipeline's worker of each renderer (sim/run/pipeline.py)
     imaging: list[CameraImaging | None]  # per rig: image formation, None for ideal images
@@ -263,7 +264,7 @@ class Run:
         self._settle(robots)
         t0 = self.timers.add("setup", t0)
         self.team_markers = self._team_markers(robots)
-        self.robots = {r.name: self._runtime(r) for r in robots}
+        self.robots = {r.name: self._runtime(r, k, len(robots)) for k, r in enumerate(robots)}
         self._root_body = {r.name: self._robot_root_body(r) for r in robots}
         model = self.world.model
         materials = [model.material(k).name.rsplit("/", 1)[-1] for k in range(model.nmat)]  # robots' assets are prefixed
@@ -328,7 +329,18 @@ class Run:
         assert ticks is not None, rate_hz
         return ticks
 
-    def _runtime(self, robot: Robot) -> RobotRuntime:
+    def _camera_phase(self, robot: Robot, index: int, team: int) -> int:
+        """Control ticks into each frame period at which ``robot``'s cameras trigger: its
+        ``camera.trigger_phase`` of the period, by default ``index / team`` (the cameras of
+        separate robots are not synchronised; staggered, the image pipeline draws one robot's
+        pair while another's waits for its trigger instead of all at once), on an IMU sample."""
+        cfg = robot.cfg
+        every, imu_every = self._every(cfg.camera.rate_hz), self._every(cfg.imu.rate_hz)
+        phase = cfg.camera.trigger_phase if cfg.camera.trigger_phase is not None else index / team
+        ticks = int(phase * every)
+        return ticks - ticks % imu_every
+
+    def _runtime(self, robot: Robot, index: int, team: int) -> RobotRuntime:
         cfg = robot.cfg
         cores = cfg.computer.cores or robot.default_cores
         lane = Lane(
@@ -371,6 +383,7 @@ class Run:
             inertial=InertialAverager(self.world.model, robot.accel_sensor, robot.gyro_sensor),
             imu_every=self._every(cfg.imu.rate_hz),
             camera_every=self._every(cfg.camera.rate_hz),
+            camera_phase=self._camera_phase(robot, index, team),
             renderers=renderers,
             workers=[self._next_worker() for _ in renderers],
             imaging=imaging,
@@ -642,8 +655,9 @@ class Run:
                 if runtime.dataset is not None:
                     runtime.dataset.odometry(now, odom)
             t = self.timers.add("sensors", t)
-            if tick % runtime.camera_every == 0:
-                self._capture(runtime, tick // runtime.camera_every, now)
+            frame, at = divmod(tick - runtime.camera_phase, runtime.camera_every)
+            if at == 0 and frame >= 0:
+                self._capture(runtime, frame, now)
 
     def _capture(self, runtime: RobotRuntime, frame: int, now: float) -> None:
         """A stereo trigger: each rig's scene is snapshot now; drawing, exposure, marker search
