@@ -71,6 +71,7 @@ WHEEL_Z_M = -0.14
 MAST_XY = (0.18, 0.0)
 PAN_HEIGHT_M = 0.97
 TILT_OFFSET_M = 0.06
+TILT_AXIS_BODY = np.array([MAST_XY[0], MAST_XY[1], PAN_HEIGHT_M + TILT_OFFSET_M])  # where the head turns, body frame
 STEREO_BASELINE_M = 0.09
 DEFAULT_TILT_DEG = 25.0
 MARKER_SIZE_M = 0.15
@@ -356,8 +357,7 @@ class LRU(Robot):
         target = None if self.gaze_source is None else self.gaze_source.look_at(t)
         if target is None:
             return None
-        head = np.array([MAST_XY[0], MAST_XY[1], PAN_HEIGHT_M + TILT_OFFSET_M])
-        v = T_world_body[:3, :3].T @ (np.asarray(target, float) - T_world_body[:3, 3]) - head
+        v = T_world_body[:3, :3].T @ (np.asarray(target, float) - T_world_body[:3, 3]) - TILT_AXIS_BODY
         rig = self.stereo_rigs[0]
         down = math.atan2(-v[2], math.hypot(v[0], v[1])) + math.atan2(rig.height / 4, rig.focal_px)
         return math.atan2(v[1], v[0]), min(down, math.radians(DEFAULT_TILT_DEG))
