@@ -122,6 +122,7 @@ class LocalEstimator:
         self._rest_accel: list[np.ndarray] = []
         self._rest_gyro: list[np.ndarray] = []
         self._T_body_cam: dict[int, np.ndarray] = {}
+        self._camera_prior: dict[int, np.ndarray] = {}  # the filter's left-camera pose at capture, in the first frame
         self._keyframes: tuple[int, ...] = ()
         self._pending: set[int] = set()  # captured, VO not yet done
         self._distance = 0.0
@@ -238,15 +239,18 @@ class LocalEstimator:
             return False
         self.filter.clone(frame_id, t)
         self._T_body_cam[frame_id] = np.asarray(T_body_cam, float)
+        self._camera_prior[frame_id] = self.T_first_current @ self.filter.clone_pose(frame_id) @ self._T_body_cam[frame_id]
         self._capture_t[frame_id] = float(t)
         self._pending.add(frame_id)
         return True
 
     def process_vo(self, frame_id: int, t: float, left: np.ndarray, right: np.ndarray, depth: np.ndarray | None) -> VoResult:
-        """The VO job itself (no filter access: it runs on its own core)."""
+        """The VO job itself (no filter access: it runs on its own core). Its tracking is
+        placed by the camera pose the filter and the head's encoders gave at capture
+        (``StereoVO.process``'s ``T_prior``)."""
         if self.vo is None:
             raise EstimatorException("this estimator has no visual odometry")
-        return self.vo.process(frame_id, t, left, right, depth)
+        return self.vo.process(frame_id, t, left, right, depth, self._camera_prior.get(frame_id))
 
     def on_vo(self, result: VoResult) -> float | None:
         """Apply a VO delta when it arrives (delay compensated by the filter's clones).
@@ -310,6 +314,7 @@ class LocalEstimator:
 
     def _forget(self, frame_id: int) -> None:
         del self._T_body_cam[frame_id]
+        self._camera_prior.pop(frame_id, None)
         self._capture_t.pop(frame_id, None)
         if frame_id in self.filter.clone_ids:
             self.filter.drop_clone(frame_id)

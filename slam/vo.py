@@ -118,7 +118,7 @@ class VoParams:
 
     # features (keyframes)
     max_features: int = 300  # corners per keyframe, spread by the grid
-    grid_cols: int = 8  # bucketing grid: at most ceil(max_features / cells) corners per cell
+    grid_cols: int = 8  # bucketing grid: at most ceil(max_features / cells holding corners) corners per cell
     grid_rows: int = 6
     corner_quality: float = 0.01  # Shi-Tomasi quality level (relative to the best corner)
     min_corner_distance_px: float = 6.0
@@ -210,6 +210,7 @@ class _Keyframe:
     X: np.ndarray  # (n, 3) points in the keyframe's left-camera frame
     cov_X: np.ndarray  # (n, 3, 3) their stereo covariance
     T_odo: np.ndarray  # 4x4 pose in the VO's own chained frame (used for predictions only)
+    T_prior: np.ndarray | None = None  # 4x4 pose the caller predicted for it (``StereoVO.process``), predictions only
     disparity: np.ndarray | None = None  # (n,) its corners' disparities by sparse stereo (px), NaN where none
 
 
@@ -523,12 +524,20 @@ class StereoVO:
 
     # ------------------------------------------------------------------ public
 
-    def process(self, frame_id: int, t: float, left: np.ndarray, right: np.ndarray, depth: np.ndarray | None = None) -> VoResult:
+    def process(self, frame_id: int, t: float, left: np.ndarray, right: np.ndarray, depth: np.ndarray | None = None,
+                T_prior: np.ndarray | None = None) -> VoResult:
         """Estimate the pose of this pair's left camera relative to a keyframe.
 
         ``left``/``right``: rectified uint8 images (grey, or RGB converted to grey);
         ``depth``: optional z-depth of the left image (NaN invalid), e.g. from
         ``StereoMatcher.depth``; without it, corners are matched into ``right``.
+        ``T_prior``: optional 4x4 pose of this left camera in any fixed frame as the
+        caller predicts it (the filter's clone at capture with the head's encoders). Where
+        the keyframe has one too, their relative pose predicts where its features appear,
+        instead of the constant-velocity model of the VO's own deltas: that fails when
+        the camera starts or stops turning (a pan-tilt head's slew, a point turn) and,
+        after a lost frame, knows no motion at all. It only places KLT's search: the
+        delta is measured from the images alone.
         Frame ids must be unique. Outcomes:
 
         - ``ok``: ``T_kf_cur`` and ``cov`` relative to keyframe ``keyframe_id`` (always in
@@ -549,10 +558,10 @@ class StereoVO:
         # measure against the active keyframe, then (if that fails) the rest of the history
         meas, ref = None, None
         if self.active is not None:
-            meas, ref = self._measure(self.active, grey_l), self.active
+            meas, ref = self._measure(self.active, grey_l, T_prior), self.active
             if not meas.ok:
                 for kf in sorted((k for k in self.history if k is not self.active), key=lambda k: -k.frame_id):
-                    m = self._measure(kf, grey_l)
+                    m = self._measure(kf, grey_l, T_prior)
                     if m.ok:
                         meas, ref = m, kf
                         break
@@ -563,12 +572,12 @@ class StereoVO:
             T_odo_cur = ref.T_odo @ meas.T
             if not self._keeps(ref, meas):
                 self._measure_offset(ref, meas, grey_l)  # its widest baseline: the keyframe's offset measurement
-                new_kf = self._make_keyframe(frame_id, t, grey_l, right, depth, T_odo_cur, keep=ref) is None
+                new_kf = self._make_keyframe(frame_id, t, grey_l, right, depth, T_odo_cur, T_prior, keep=ref) is None
             elif ref is not self.active:
                 self.active = ref  # a revisit: back to the older keyframe
         else:
             T_odo_cur = self._T_odo_prev @ self._motion  # unknown: the prediction stands in
-            failure = self._make_keyframe(frame_id, t, grey_l, right, depth, T_odo_cur)
+            failure = self._make_keyframe(frame_id, t, grey_l, right, depth, T_odo_cur, T_prior)
             new_kf = failure is None
             if failure == VoFailure.NO_TEXTURE or (meas is None and failure is not None):
                 reason = failure
@@ -609,26 +618,33 @@ class StereoVO:
                 and np.linalg.norm(m.T[:3, 3]) <= p.keyframe_max_translation_m
                 and angle <= math.radians(p.keyframe_max_rotation_deg))
 
-    def detect(self, grey: np.ndarray) -> np.ndarray:
-        """Shi-Tomasi corners (k, 2) float32, at most ``ceil(max_features / cells)`` per
-        grid cell, strongest first within a cell (vectorised bucketing)."""
+    def detect(self, grey: np.ndarray, usable: np.ndarray | None = None) -> np.ndarray:
+        """Shi-Tomasi corners (k, 2) float32, spread by the detection grid: the
+        ``max_features`` shared among the cells that hold corners, at most
+        ``ceil(max_features / cells)`` each, strongest first within a cell (vectorised
+        bucketing). ``usable`` (bool, image shape) restricts the search to those pixels,
+        e.g. where the stereo depth gives a keyframe point: the quality level is relative
+        to the best corner there, so a horizon or a bright robot elsewhere in the image
+        does not push the ground's corners below it."""
         p = self.params
         mask = np.zeros_like(grey)
         b = p.border_px
         mask[b:-b, b:-b] = 255
-        cells = p.grid_cols * p.grid_rows
-        per_cell = math.ceil(p.max_features / cells)
+        if usable is not None:
+            mask[~usable] = 0
         pts = cv2.goodFeaturesToTrack(grey, 4 * p.max_features, p.corner_quality, p.min_corner_distance_px, mask=mask,
                                       blockSize=3)
         if pts is None:
             return np.zeros((0, 2), np.float32)
         pts = pts.reshape(-1, 2)  # strongest first
-        keep = np.flatnonzero(self._rank_in_cell(pts) < per_cell)[: p.max_features]
+        rank, cells = self._rank_in_cell(pts)
+        keep = np.flatnonzero(rank < math.ceil(p.max_features / cells))[: p.max_features]
         return np.ascontiguousarray(pts[keep], dtype=np.float32)
 
-    def _rank_in_cell(self, uv: np.ndarray) -> np.ndarray:
+    def _rank_in_cell(self, uv: np.ndarray) -> tuple[np.ndarray, int]:
         """Each point's rank (N,) among the points before it in its cell of the detection
-        grid (``VoParams.grid_cols`` x ``grid_rows`` over the image)."""
+        grid (``VoParams.grid_cols`` x ``grid_rows`` over the image), and how many cells
+        hold points."""
         p = self.params
         cell = (np.minimum((uv[:, 1] * p.grid_rows / self.calib.height).astype(int), p.grid_rows - 1) * p.grid_cols
                 + np.minimum((uv[:, 0] * p.grid_cols / self.calib.width).astype(int), p.grid_cols - 1))
@@ -637,7 +653,7 @@ class StereoVO:
         first = np.searchsorted(sorted_cells, sorted_cells, side="left")
         rank = np.empty(len(uv), int)
         rank[order] = np.arange(len(uv)) - first
-        return rank
+        return rank, int(np.count_nonzero(rank == 0))
 
     def _points_from_depth(self, uv: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """3D points at integer corners from a dense z-depth (as it came: no disparity offset
@@ -685,14 +701,12 @@ class StereoVO:
         X = triangulate(uv[:, 0], uv[:, 1], uv_r[:, 0], uv[:, 1], self.calib)
         return X, ok
 
-    def _make_keyframe(self, frame_id, t, grey, right, depth, T_odo, keep: _Keyframe | None = None) -> VoFailure | None:
-        """Make the current frame the active keyframe; returns a failure reason or None.
-        A full history drops its oldest keyframe other than ``keep`` (the reference of
-        this frame's delta, whose filter clone the caller still needs)."""
+    def _keyframe_points(self, uv: np.ndarray, grey: np.ndarray, right: np.ndarray, depth: np.ndarray | None):
+        """The corners' points for a keyframe: ``(uv, X, ok, disparity)``, the disparity
+        offset estimated so far taken off ``X``, ``ok`` where the point is valid and in
+        range, ``disparity`` the sparse stereo's (the offset's measurement; NaN where none,
+        None without an offset estimate)."""
         p = self.params
-        uv = self.detect(grey)
-        if len(uv) < p.min_features:
-            return VoFailure.NO_TEXTURE
         sparse = None  # sparse stereo on the nominal calibration: the offset's measurement
         if depth is not None:
             X, ok = self._points_from_depth(uv, depth)
@@ -707,15 +721,42 @@ class StereoVO:
                 X = X * (remove_disparity_offset(X[:, 2], self.calib, offset, uv) / X[:, 2])[:, None]
         with np.errstate(invalid="ignore"):
             ok &= (X[:, 2] >= p.min_depth_m) & (X[:, 2] <= self._max_depth)
-        if ok.sum() < p.min_features:
-            return VoFailure.NO_DEPTH
-        X = X[ok]
         disparity = None
         if sparse is not None and self.offset is not None:
             with np.errstate(divide="ignore", invalid="ignore"):
                 sparse_ok &= (sparse[:, 2] >= p.min_depth_m) & (sparse[:, 2] <= self._max_depth)
-                disparity = np.where(sparse_ok, self.calib.fb / sparse[:, 2], np.nan)[ok]
-        kf = _Keyframe(frame_id, t, grey, uv[ok], X, stereo_point_covariance(X, self.calib, p.pixel_noise_px), T_odo.copy(), disparity)
+                disparity = np.where(sparse_ok, self.calib.fb / sparse[:, 2], np.nan)
+        return uv, X, ok, disparity
+
+    def _make_keyframe(self, frame_id, t, grey, right, depth, T_odo, T_prior, keep: _Keyframe | None = None) -> VoFailure | None:
+        """Make the current frame the active keyframe; returns a failure reason or None.
+        A full history drops its oldest keyframe other than ``keep`` (the reference of
+        this frame's delta, whose filter clone the caller still needs).
+
+        Corners are searched in the whole image first. Where fewer than
+        ``keyframe_min_inliers`` of them get a point (the camera looks over the horizon or
+        up a slope, a bright robot or the skyline holds the strongest corners), they are
+        searched again only where the dense depth is valid (:meth:`detect`'s ``usable``)
+        and the better of the two sets is kept."""
+        p = self.params
+        uv = self.detect(grey)
+        if len(uv) < p.min_features:
+            return VoFailure.NO_TEXTURE
+        uv, X, ok, disparity = self._keyframe_points(uv, grey, right, depth)
+        if depth is not None and ok.sum() < p.keyframe_min_inliers:
+            with np.errstate(invalid="ignore"):
+                usable = (depth >= p.min_depth_m) & (depth <= self._max_depth)
+            again = self.detect(grey, usable)
+            if len(again) > ok.sum():
+                found = self._keyframe_points(again, grey, right, depth)
+                if found[2].sum() > ok.sum():
+                    uv, X, ok, disparity = found
+        if ok.sum() < p.min_features:
+            return VoFailure.NO_DEPTH
+        X = X[ok]
+        disparity = None if disparity is None else disparity[ok]
+        kf = _Keyframe(frame_id, t, grey, uv[ok], X, stereo_point_covariance(X, self.calib, p.pixel_noise_px), T_odo.copy(),
+                       None if T_prior is None else np.asarray(T_prior, float).copy(), disparity)
         self.history.append(kf)
         if len(self.history) > p.n_keyframes:
             self.history.remove(next(k for k in self.history if k is not keep))
@@ -724,12 +765,14 @@ class StereoVO:
 
     # ------------------------------------------------------------------ measurement
 
-    def _measure(self, kf: _Keyframe, grey: np.ndarray) -> _Measurement:
+    def _measure(self, kf: _Keyframe, grey: np.ndarray, T_prior: np.ndarray | None) -> _Measurement:
         """Track ``kf`` into the current image and estimate ``T_kf_cur`` with its covariance."""
         p = self.params
         c = self.calib
-        # prediction: constant velocity in the VO's chained frame
-        T_pred = np.linalg.inv(kf.T_odo) @ self._T_odo_prev @ self._motion
+        if T_prior is not None and kf.T_prior is not None:  # prediction: the caller's poses
+            T_pred = np.linalg.inv(kf.T_prior) @ T_prior
+        else:  # constant velocity in the VO's chained frame
+            T_pred = np.linalg.inv(kf.T_odo) @ self._T_odo_prev @ self._motion
         R, tp = T_pred[:3, :3], T_pred[:3, 3]
         Xc = (kf.X - tp) @ R
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -799,7 +842,7 @@ class StereoVO:
         if self.offset is None or kf.disparity is None:
             return
         p = self.params
-        sel = np.argsort(self._rank_in_cell(m.inlier_uv), kind="stable")[: p.disparity_offset_max_tracks]  # one per cell in turn
+        sel = np.argsort(self._rank_in_cell(m.inlier_uv)[0], kind="stable")[: p.disparity_offset_max_tracks]  # one per cell in turn
         ids = m.inlier_ids[sel]
         uv0 = kf.uv[ids]
         uv1, refined = refine_tracks_affine(kf.image, grey, uv0, m.inlier_uv[sel], p.disparity_offset_window_px)

@@ -64,6 +64,10 @@ TERRAIN = {"preset": "moon", "size_m": 24, "roughness_m": 0.05, "craters": {"cou
 ROVER = {"name": "rover", "preset": "lru", "start": {"xy": [-5, -1], "yaw_deg": 0},
          "route": {"speed_mps": 0.4, "waypoints": [[-2, -1], [-2, 1.5]]}}
 
+ROVER_SCAN = {"name": "rover", "preset": "lru", "start": {"xy": [-5, -1], "yaw_deg": 0},
+              "route": {"speed_mps": 0.4, "scan_duration_s": 10, "scan_tilt_deg": 10,
+                        "waypoints": [{"xy": [-4.7, -1], "scan": True}]}}
+
 COPTER = {"name": "copter", "preset": "ardea", "start": {"xy": [-5, -2], "yaw_deg": 0},
           "route": {"speed_mps": 0.6, "cruise_altitude_m": 2.0, "waypoints": [[-1, -2], [1, 0.5]]}}
 
