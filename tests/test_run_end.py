@@ -61,3 +61,21 @@ def test_drain_s_validates():
     assert load_scenario("scenarios/quickstart.yaml").drain_s > 0
     with pytest.raises(ScenarioError, match="drain_s"):
         load_scenario("scenarios/quickstart.yaml", ["drain_s=-1"])
+
+
+def test_a_second_partition_at_the_end_does_not_repeat_the_frame_switch(drained):
+    """With the sensors off the filter no longer propagates: a partition at the end right
+    after another one (an image mapped in between) would switch the frame again with a
+    zero covariance, which the graph refuses. The end's partition is skipped then."""
+    run, _ = drained
+    onboard = run.robots["lru1"].onboard
+    est, builder = onboard.estimator, onboard.mapper.builder
+    assert est.switches[-1].t >= est.filter.t  # the end's switch was the filter's last step
+    rig = onboard.vo_rig
+    shape = (rig.height, rig.width)
+    builder.integrate(np.full(shape, 2.0, np.float32), np.eye(4), np.zeros(shape, bool), np.zeros(shape, np.uint8),
+                      run.sim_time, classified=np.ones(shape, bool))
+    assert builder.images == 1
+    switches, partitions = len(est.switches), len(onboard.partitions)
+    assert onboard._end_submap(run.sim_time) == []
+    assert len(est.switches) == switches and len(onboard.partitions) == partitions

@@ -284,7 +284,16 @@ class OnboardStack:
         submap (if it has images) as a ``filter_update`` job, so that it is sent and matched
         like every other."""
         if self.mapper is not None and self.mapper.builder.images:
-            self.lane.submit("filter_update", work=lambda: self._new_submap(now, "end"), on_done=lambda out, t: self._send(out))
+            self.lane.submit("filter_update", work=lambda: self._end_submap(now), on_done=lambda out, t: self._send(out))
+
+    def _end_submap(self, now: float) -> list[Outgoing]:
+        """The end's partition, unless a partition queued before it has already finished the
+        submap: with the sensors off the filter no longer propagates, so a second frame switch
+        at the filter's time would repeat the first with a zero covariance."""
+        est = self.estimator
+        if not self.mapper.builder.images or (est.switches and est.switches[-1].t >= est.filter.t):
+            return []
+        return self._new_submap(now, "end")
 
     def detection(self, now: float, rig: StereoRig, T_body_cam: np.ndarray, search: Callable[[], Any] | None) -> None:
         """Marker detection in the left image of a pair of any of the robot's rigs (thesis
