@@ -801,8 +801,8 @@ class SlamConfig(StrictModel):
     vo_disparity_offset_model: Literal["yaw", "rotation"] = slam_field(
         SlamParam(VoParams, "disparity_offset_model"),
         description="what the online estimate models: the right camera's yaw alone (its offset, larger towards the image's "
-        "sides) or its whole rotation error (yaw, roll and pitch, each offsetting the disparities in its own pattern; "
-        "slam/stereo_offset.py, docs/realism.md)",
+        "sides) or its whole rotation error (yaw, roll and pitch, each offsetting the disparities in its own pattern; roll "
+        "and pitch read off the stereo matches' rows; slam/stereo_offset.py, docs/realism.md)",
     )
     camera_rotation_std_deg: NonNegFloat = slam_field(
         SlamParam(FilterParams, "extrinsic_rotation_std", degrees=True),

@@ -243,6 +243,18 @@ def disparity_offset_sensitivity(u, v, disparity, calibration: StereoCalibration
     return np.stack([-x * y, 1.0 + x * x, -y], axis=-1)
 
 
+def row_offset_sensitivity(u, v, disparity, calibration: StereoCalibration) -> np.ndarray:
+    """How far the right camera's row of a match lies below the left's per pixel of each
+    coefficient ``c = f θ`` (as :func:`disparity_offset_sensitivity`): ``(..., 3)``, the
+    row offset being ``r · c``. The same turn moves the right image's normalised point by
+    ``θx (1 + y^2) - θy x y - θz x`` across the rows (the motion field's other component),
+    so ``r = (1 + y^2, -x y, -x)``: a pitch shifts every row, a roll tilts the rows from
+    the left side to the right, a yaw barely shows. Unlike a disparity, a row offset needs
+    no depth to be seen: every stereo match measures it."""
+    x, y = np.broadcast_arrays(*_right_normalised(u, v, disparity, calibration))
+    return np.stack([1.0 + y * y, -x * y, -x], axis=-1)
+
+
 def disparity_offset(u, v, disparity, calibration: StereoCalibration, coefficients_px) -> np.ndarray:
     """The offset ``s · c`` (px) of each measured disparity, :func:`disparity_offset_sensitivity`
     contracted with the coefficients ``c`` (3,) term by term, without the per-pixel stack

@@ -19,11 +19,16 @@ parts of the image differently, which the pose cannot absorb, so a keyframe and 
 image of it measure ``c`` (:func:`slam.vo.two_view_disparity_offset`, on sparse subpixel
 disparities of the keyframe's corners). The VO measures it once per keyframe, with the
 widest baseline; all measurements against one keyframe would share that keyframe's
-disparity noise. This class fuses the keyframes' measurements with a Gaussian prior (the
-calibration's uncertainty), in information form: the weighted mean of independent
-measurements of a constant, each with its 3x3 information (a pitch is weakly observed on
-a narrow image; its information says so). A keyframe measured again, after a revisit,
-keeps its more informative measurement (larger trace). A measurement whose Mahalanobis
+disparity noise. Two views see the yaw well but a roll or pitch of a narrow rig looking at
+the ground hardly at all (they tilt the points much as the ground's own slope would); the
+same turn also moves the right image across the rows (:func:`slam.stereo.row_offset_sensitivity`),
+which every stereo match shows without a depth, so with the ``rotation`` model each new
+keyframe's matches measure the pitch and roll (:func:`slam.vo.row_offset_measurement`) and
+the two views the yaw alone. This class fuses the keyframes' measurements with a Gaussian
+prior (the calibration's uncertainty), in information form: the weighted mean of
+independent measurements of a constant, each with its 3x3 information (zero where it
+sees nothing). A keyframe measured again in the same way, after a revisit, keeps its more
+informative measurement (larger trace). A measurement whose Mahalanobis
 distance from the current estimate, under both covariances, exceeds the ``gate_sigma``
 quantile of a chi-square (as many degrees of freedom as the measurement informs) is not
 fused (mismatched points, a moving object in view). Written by hand: no library holds
@@ -54,7 +59,7 @@ class DisparityOffsetEstimate:
             raise StereoOffsetException(f"prior_std_px and gate_sigma must be > 0, got {prior_std_px}, {gate_sigma}")
         self.gate_sigma = gate_sigma
         self._gate_p = math.erf(gate_sigma / math.sqrt(2.0))
-        self._best: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # keyframe -> (estimate, information) of its best measurement
+        self._best: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}  # (kind, keyframe) -> its best measurement
         self._info = np.eye(3) / prior_std_px**2  # prior: zero offsets
         self._weighted = np.zeros(3)  # sum of information @ estimate
         self.rejected = 0
@@ -81,12 +86,13 @@ class DisparityOffsetEstimate:
     @property
     def keyframes(self) -> int:
         """Keyframes whose measurements are fused."""
-        return len(self._best)
+        return len({keyframe for _, keyframe in self._best})
 
-    def add(self, keyframe: int, estimate, information) -> bool:
-        """One VO measurement against ``keyframe``: its ``estimate`` of ``c`` (px, (3,)) with
-        its ``information`` (3x3, 1 / px^2, positive semi-definite). Replaces the keyframe's
-        earlier measurement when it is more informative. Returns whether it was fused."""
+    def add(self, keyframe: int, estimate, information, kind: str = "tracks") -> bool:
+        """One VO measurement of ``keyframe``: its ``estimate`` of ``c`` (px, (3,)) with its
+        ``information`` (3x3, 1 / px^2, positive semi-definite). Replaces the keyframe's
+        earlier measurement of the same ``kind`` (its tracks into a later image, its stereo
+        matches' rows) when it is more informative. Returns whether it was fused."""
         estimate, information = np.asarray(estimate, dtype=float), np.asarray(information, dtype=float)
         if estimate.shape != (3,) or information.shape != (3, 3):
             raise StereoOffsetException(f"expected a (3,) estimate and a (3, 3) information, got {estimate.shape}, {information.shape}")
@@ -94,7 +100,8 @@ class DisparityOffsetEstimate:
         if not (np.all(np.isfinite(estimate)) and np.all(np.isfinite(information)) and np.trace(information) > 0
                 and np.linalg.eigvalsh(information)[0] >= -1e-9 * np.trace(information)):
             return False
-        old = self._best.get(keyframe)
+        key = (kind, keyframe)
+        old = self._best.get(key)
         if old is not None and np.trace(old[1]) >= np.trace(information):
             return False
         info, weighted = self._info, self._weighted
@@ -106,7 +113,7 @@ class DisparityOffsetEstimate:
         if e @ information @ np.linalg.solve(information + info, info @ e) > chi2.ppf(self._gate_p, dof):
             self.rejected += 1
             return False
-        self._best[keyframe] = (estimate, information)
+        self._best[key] = (estimate, information)
         self._info, self._weighted = info + information, weighted + information @ estimate
         return True
 

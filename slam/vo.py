@@ -80,6 +80,7 @@ from slam.stereo import (
     disparity_offset_sensitivity,
     max_depth_for_error,
     remove_disparity_offset,
+    row_offset_sensitivity,
     triangulate,
 )
 from slam.stereo_offset import DisparityOffsetEstimate
@@ -107,9 +108,11 @@ class VoFailure(StrEnum):
 #: A point's residual in the two-view adjustment has 3 degrees of freedom (two pixel coordinates, a disparity).
 CHI2_3_MEDIAN = float(chi2.median(3))
 
-#: The coefficients of ``c = f θ`` (slam.stereo_offset) each ``VoParams.disparity_offset_model``
-#: estimates: the right camera's whole rotation, or its yaw alone (roll and pitch held at zero).
-DISPARITY_OFFSET_AXES: dict[str, tuple[int, ...]] = {"rotation": (0, 1, 2), "yaw": (1,)}
+#: What ``VoParams.disparity_offset_model`` may estimate of ``c = f θ`` (slam.stereo_offset): the
+#: right camera's yaw alone (two views, :func:`two_view_disparity_offset`; roll and pitch held at
+#: zero), or its whole rotation (pitch and roll from the stereo matches' rows as well,
+#: :func:`row_offset_measurement`).
+DISPARITY_OFFSET_MODELS = ("yaw", "rotation")
 
 
 @dataclass(frozen=True)
@@ -156,7 +159,7 @@ class VoParams:
     estimate_disparity_offset: bool = True
     disparity_offset_prior_px: float = 0.25  # the calibration's uncertainty of the offset (std; 0: none, not estimated)
     disparity_offset_gate_sigma: float = 3.0
-    disparity_offset_model: str = "yaw"  # the right camera's yaw alone or its whole rotation (3 coefficients; slam.stereo_offset)
+    disparity_offset_model: str = "rotation"  # the right camera's whole rotation (3 coefficients) or its yaw alone (slam.stereo_offset)
     disparity_offset_pixel_noise_px: float = 0.1  # the offset's tracks, refined (slam.track_refinement): a floor, see two_view_disparity_offset
     disparity_offset_window_px: int = 21  # their affine patches
     disparity_offset_max_tracks: int = 48  # at most this many per keyframe, spread over the detection grid (their cost)
@@ -173,8 +176,8 @@ class VoParams:
             raise VoException(f"VoParams must be positive: {', '.join(bad)}")
         if self.min_inliers < 4:
             raise VoException(f"min_inliers must be >= 4 (PnP with RANSAC), got {self.min_inliers}")
-        if self.disparity_offset_model not in DISPARITY_OFFSET_AXES:
-            raise VoException(f"disparity_offset_model must be one of {sorted(DISPARITY_OFFSET_AXES)}, got {self.disparity_offset_model!r}")
+        if self.disparity_offset_model not in DISPARITY_OFFSET_MODELS:
+            raise VoException(f"disparity_offset_model must be one of {list(DISPARITY_OFFSET_MODELS)}, got {self.disparity_offset_model!r}")
         if self.disparity_offset_window_px < 5 or self.disparity_offset_window_px % 2 == 0:
             raise VoException(f"disparity_offset_window_px must be odd and at least 5, got {self.disparity_offset_window_px}")
         if not 0 <= self.keyframe_min_inlier_share <= 1:
@@ -381,6 +384,7 @@ def disparity_bias_sensitivity(
 def two_view_disparity_offset(
     T: np.ndarray, uv0: np.ndarray, disparity: np.ndarray, uv1: np.ndarray, calib: StereoCalibration,
     pixel_noise_px: float, axes: tuple[int, ...] = (0, 1, 2), iterations: int = 5, gate: float = 4.0,
+    held: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The rig's disparity offset coefficients ``c = f θ`` (px, (3,): the right camera's
     rotation error, measured disparities exceed the true ones by ``s_i · c``,
@@ -393,7 +397,8 @@ def two_view_disparity_offset(
     disparity ``d_i`` on its keyframe ray through ``uv0_i``; measurements the keyframe's
     disparities ``disparity_i = d_i + s_i · c`` (noise ``sqrt 2 Δp``, eq. 5.2's model) and
     the later image's pixels ``uv1_i`` (``Δp``). Only the coefficients in ``axes`` are
-    unknowns, the others held at zero (their rows and columns of the information zero).
+    unknowns, the others held at ``held`` (default zero; their rows and columns of the
+    information zero, their entries of the returned estimate ``held``'s).
     Gauss-Newton with the points eliminated by their Schur complement (one unknown each),
     the inverse of the reduced ``6 + k`` square system giving ``c``'s information. After
     two iterations, points whose residual exceeds ``gate`` standard deviations are dropped.
@@ -404,7 +409,15 @@ def two_view_disparity_offset(
     derivative of :func:`disparity_bias_sensitivity`, the pose eliminated) was biased by
     about ``-0.9 σ_d^2`` px (``σ_d`` the disparity noise; synthetic points, while this was
     written), -0.1 to -0.2 px on realistic Etna images, the size of the offsets themselves;
-    this one is not (tests/test_vo.py)."""
+    this one is not (tests/test_vo.py).
+
+    A roll and a pitch are seen only weakly here: on a narrow rig looking at the ground
+    they change the points' depths much as a tilted ground would, and on a rendered Etna
+    drive (60 s, the LRU's head at 320x240, nominal rig) KLT's and the affine tracks' own
+    errors of about 0.01 px made them 0.25 and 0.06 px (3 and 0.5 of their stated
+    standard deviations), and a true roll of -0.48 px left out of the model pulled the
+    yaw's estimate to -0.18 px against its true 0.025. The stereo matches' rows show both
+    directly (:func:`row_offset_measurement`), so the VO holds them there."""
     f, fb = calib.focal_px, calib.fb
     ray = np.stack([(uv0[:, 0] - calib.cx) / f, (uv0[:, 1] - calib.cy) / f, np.ones(len(uv0))], axis=1)
     d = np.asarray(disparity, dtype=float).copy()
@@ -412,7 +425,12 @@ def two_view_disparity_offset(
     ray, measured, d, uv1 = ray[ok], d[ok], d[ok], np.asarray(uv1, dtype=float)[ok]
     axes = list(axes)
     k = len(axes)
-    sens = disparity_offset_sensitivity(uv0[ok, 0], uv0[ok, 1], measured, calib)[:, axes]
+    sens_all = disparity_offset_sensitivity(uv0[ok, 0], uv0[ok, 1], measured, calib)
+    fixed = np.zeros(3) if held is None else np.asarray(held, dtype=float).copy()
+    fixed[axes] = 0.0
+    measured = measured - sens_all @ fixed  # the held coefficients' offsets taken off
+    d = measured.copy()
+    sens = sens_all[:, axes]
     w_img, w_disp = 1.0 / pixel_noise_px**2, 0.5 / pixel_noise_px**2
     T, c = np.array(T, dtype=float), np.zeros(k)
     K, no_cov = calib.K, np.zeros((len(d), 3, 3))  # the points' errors are unknowns here, not covariances
@@ -458,8 +476,49 @@ def two_view_disparity_offset(
         return None
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(info)) and np.trace(info) > 1e-6 and np.linalg.cond(S) < 1e12):
         return None
-    full_c, full_info = np.zeros(3), np.zeros((3, 3))
+    full_c, full_info = fixed, np.zeros((3, 3))
     full_c[axes], full_info[np.ix_(axes, axes)] = c, 0.5 * (info + info.T)
+    return full_c, full_info
+
+
+def row_offset_measurement(
+    uv: np.ndarray, disparity: np.ndarray, row_offset: np.ndarray, calib: StereoCalibration, pixel_noise_px: float,
+    yaw_px: float = 0.0, gate: float = 4.0,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The right camera's pitch and roll coefficients (``c_x``, ``c_z`` of ``c = f θ``, px)
+    from one image's stereo matches, with their information (3x3, 1 / px^2, the yaw's row
+    and column zero); None with fewer than 8 matches. Our addition (slam.stereo_offset).
+
+    A match's right row lies ``r · c`` below its left row
+    (:func:`slam.stereo.row_offset_sensitivity`): a linear least-squares fit of ``c_x`` and
+    ``c_z`` to the measured row offsets ``row_offset`` (right row less left row, px; NaN
+    where none) of the left pixels ``uv`` with their ``disparity``, after the yaw's small
+    share (``-x y yaw_px``) is taken off. Matches beyond ``gate`` robust standard deviations
+    of the residuals are dropped (twice). The residuals' variance, at least
+    ``pixel_noise_px^2``, weighs the fit: on rendered Etna drives (KLT matches at 320x240)
+    the residuals scatter by 0.03-0.04 px but the keyframes' estimates by about twice what
+    that would give, so the floor (the VO's 0.1 px for refined tracks) keeps the stated
+    information near the keyframes' real scatter."""
+    uv, disparity, row_offset = np.asarray(uv, float), np.asarray(disparity, float), np.asarray(row_offset, float)
+    ok = np.isfinite(row_offset) & np.isfinite(disparity)
+    if ok.sum() < 8:
+        return None
+    r = row_offset_sensitivity(uv[ok, 0], uv[ok, 1], disparity[ok], calib)
+    A, b = r[:, [0, 2]], row_offset[ok] - r[:, 1] * yaw_px
+    keep = np.ones(len(b), dtype=bool)
+    for _ in range(3):
+        c = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
+        residual = b - A @ c
+        sigma = max(pixel_noise_px, 1.4826 * float(np.median(np.abs(residual[keep]))))
+        keep = np.abs(residual) < gate * sigma
+        if keep.sum() < 8:
+            return None
+    c = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
+    residual = b[keep] - A[keep] @ c
+    variance = max(pixel_noise_px**2, float(residual @ residual) / (keep.sum() - 2))
+    full_c, full_info = np.zeros(3), np.zeros((3, 3))
+    full_c[[0, 2]], full_c[1] = c, yaw_px
+    full_info[np.ix_([0, 2], [0, 2])] = A[keep].T @ A[keep] / variance
     return full_c, full_info
 
 
@@ -676,7 +735,8 @@ class StereoVO:
                             dense_z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """3D points by KLT along the rectified rows of the right image, forward-backward
         checked, triangulated with :func:`slam.stereo.triangulate` on the nominal calibration
-        (no disparity offset taken off). ``dense_z``: the corners' depth from a dense depth
+        (no disparity offset taken off), with each match's row offset (right row less left
+        row, NaN where none). ``dense_z``: the corners' depth from a dense depth
         image, when there is one: KLT starts at its disparity and a match more than
         ``stereo_max_disparity_gap_px`` away from it is dropped; else KLT starts at the
         disparity of 3 m."""
@@ -697,23 +757,25 @@ class StereoVO:
         if dense_z is not None:
             with np.errstate(invalid="ignore"):
                 ok &= np.abs(uv[:, 0] - uv_r[:, 0] - prior) <= p.stereo_max_disparity_gap_px
-        # y from the left row alone: the right row is a noisy copy on a rectified pair
+        # y from the left row alone: the right row is a noisy copy on a rectified pair,
+        # or off by the rig's pitch and roll (the offset's other measurement)
         X = triangulate(uv[:, 0], uv[:, 1], uv_r[:, 0], uv[:, 1], self.calib)
-        return X, ok
+        return X, ok, np.where(ok, uv_r[:, 1] - uv[:, 1], np.nan)
 
     def _keyframe_points(self, uv: np.ndarray, grey: np.ndarray, right: np.ndarray, depth: np.ndarray | None):
-        """The corners' points for a keyframe: ``(uv, X, ok, disparity)``, the disparity
-        offset estimated so far taken off ``X``, ``ok`` where the point is valid and in
-        range, ``disparity`` the sparse stereo's (the offset's measurement; NaN where none,
-        None without an offset estimate)."""
+        """The corners' points for a keyframe: ``(uv, X, ok, disparity, rows)``, the
+        disparity offset estimated so far taken off ``X``, ``ok`` where the point is valid
+        and in range, ``disparity`` and ``rows`` the sparse stereo's disparities and row
+        offsets (the offset's measurements; NaN where none, None without an offset
+        estimate)."""
         p = self.params
-        sparse = None  # sparse stereo on the nominal calibration: the offset's measurement
+        sparse, rows = None, None  # sparse stereo on the nominal calibration: the offset's measurements
         if depth is not None:
             X, ok = self._points_from_depth(uv, depth)
             if self.offset is not None:
-                sparse, sparse_ok = self._points_from_stereo(uv, grey, right, X[:, 2])
+                sparse, sparse_ok, rows = self._points_from_stereo(uv, grey, right, X[:, 2])
         else:
-            X, ok = self._points_from_stereo(uv, grey, right)
+            X, ok, rows = self._points_from_stereo(uv, grey, right)
             sparse, sparse_ok = X, ok.copy()
         offset = self.disparity_offset
         if offset.any():
@@ -726,7 +788,7 @@ class StereoVO:
             with np.errstate(divide="ignore", invalid="ignore"):
                 sparse_ok &= (sparse[:, 2] >= p.min_depth_m) & (sparse[:, 2] <= self._max_depth)
                 disparity = np.where(sparse_ok, self.calib.fb / sparse[:, 2], np.nan)
-        return uv, X, ok, disparity
+        return uv, X, ok, disparity, rows
 
     def _make_keyframe(self, frame_id, t, grey, right, depth, T_odo, T_prior, keep: _Keyframe | None = None) -> VoFailure | None:
         """Make the current frame the active keyframe; returns a failure reason or None.
@@ -742,7 +804,7 @@ class StereoVO:
         uv = self.detect(grey)
         if len(uv) < p.min_features:
             return VoFailure.NO_TEXTURE
-        uv, X, ok, disparity = self._keyframe_points(uv, grey, right, depth)
+        uv, X, ok, disparity, rows = self._keyframe_points(uv, grey, right, depth)
         if depth is not None and ok.sum() < p.keyframe_min_inliers:
             with np.errstate(invalid="ignore"):
                 usable = (depth >= p.min_depth_m) & (depth <= self._max_depth)
@@ -750,11 +812,13 @@ class StereoVO:
             if len(again) > ok.sum():
                 found = self._keyframe_points(again, grey, right, depth)
                 if found[2].sum() > ok.sum():
-                    uv, X, ok, disparity = found
+                    uv, X, ok, disparity, rows = found
         if ok.sum() < p.min_features:
             return VoFailure.NO_DEPTH
         X = X[ok]
         disparity = None if disparity is None else disparity[ok]
+        if disparity is not None and p.disparity_offset_model == "rotation":
+            self._measure_rows(frame_id, uv[ok], disparity, rows[ok])
         kf = _Keyframe(frame_id, t, grey, uv[ok], X, stereo_point_covariance(X, self.calib, p.pixel_noise_px), T_odo.copy(),
                        None if T_prior is None else np.asarray(T_prior, float).copy(), disparity)
         self.history.append(kf)
@@ -838,7 +902,8 @@ class StereoVO:
         in ``grey`` show them (:func:`two_view_disparity_offset`), once per keyframe: when the
         keyframe is replaced, its last measurement has the widest baseline. The inliers'
         tracks are refined by affine patches first (slam.track_refinement: KLT's are biased
-        over such a baseline); those that are not refined are left out."""
+        over such a baseline); those that are not refined are left out. Two views measure
+        the yaw; the pitch and roll are held at their estimate (from the rows, or zero)."""
         if self.offset is None or kf.disparity is None:
             return
         p = self.params
@@ -847,6 +912,16 @@ class StereoVO:
         uv0 = kf.uv[ids]
         uv1, refined = refine_tracks_affine(kf.image, grey, uv0, m.inlier_uv[sel], p.disparity_offset_window_px)
         found = two_view_disparity_offset(m.T, uv0[refined], kf.disparity[ids][refined], uv1[refined], self.calib,
-                                          p.disparity_offset_pixel_noise_px, DISPARITY_OFFSET_AXES[p.disparity_offset_model])
+                                          p.disparity_offset_pixel_noise_px, axes=(1,), held=self.offset.coefficients)
         if found is not None:
             self.offset.add(kf.frame_id, *found)
+
+    def _measure_rows(self, frame_id: int, uv: np.ndarray, disparity: np.ndarray, rows: np.ndarray) -> None:
+        """Fuse the rig's pitch and roll as a new keyframe's stereo matches show them in
+        their rows (:func:`row_offset_measurement`), the yaw's share taken off at its
+        current estimate."""
+        p = self.params
+        found = row_offset_measurement(uv, disparity, rows, self.calib, p.disparity_offset_pixel_noise_px,
+                                       yaw_px=float(self.offset.coefficients[1]))
+        if found is not None:
+            self.offset.add(frame_id, *found, kind="rows")

@@ -9,7 +9,14 @@ import numpy as np
 import pytest
 
 from slam.lie import so3_exp
-from slam.stereo import StereoCalibration, StereoException, disparity_offset, disparity_offset_sensitivity, remove_disparity_offset
+from slam.stereo import (
+    StereoCalibration,
+    StereoException,
+    disparity_offset,
+    disparity_offset_sensitivity,
+    remove_disparity_offset,
+    row_offset_sensitivity,
+)
 from slam.stereo_offset import DisparityOffsetEstimate, StereoOffsetException
 
 TRUTH = np.array([0.1, 0.3, -0.2])
@@ -85,8 +92,9 @@ def test_bad_parameters():
 
 def test_sensitivity_is_the_rotated_cameras_disparity_change():
     """Points seen by a right camera turned by 0.1 deg about each axis (exact projection):
-    their disparities change by ``s · f θ`` to within 1 % of the change, over the whole
-    image and a range of depths."""
+    their disparities change by ``s · f θ`` and their right rows move by ``r · f θ``
+    (:func:`row_offset_sensitivity`), each to within 1 % of the largest change, over the
+    whole image and a range of depths."""
     rng = np.random.default_rng(2)
     f, b = CALIB.focal_px, CALIB.baseline_m
     u, v, z = rng.uniform(0, 319, 200), rng.uniform(0, 239, 200), rng.uniform(1.0, 20.0, 200)
@@ -99,6 +107,9 @@ def test_sensitivity_is_the_rotated_cameras_disparity_change():
         d = u - (f * P[:, 0] / P[:, 2] + CALIB.cx)
         predicted = disparity_offset_sensitivity(u, v, d, CALIB) @ (f * theta)
         np.testing.assert_allclose(d - d_true, predicted, atol=0.01 * np.abs(predicted).max())
+        rows = f * P[:, 1] / P[:, 2] + CALIB.cy - v
+        predicted_rows = row_offset_sensitivity(u, v, d, CALIB) @ (f * theta)
+        np.testing.assert_allclose(rows, predicted_rows, atol=0.01 * np.abs(predicted_rows).max())
     c = np.array([0.3, -0.2, 0.5])  # the offset written out term by term is the same contraction
     np.testing.assert_allclose(disparity_offset(u, v, d_true, CALIB, c), disparity_offset_sensitivity(u, v, d_true, CALIB) @ c,
                                rtol=1e-12, atol=1e-12)

@@ -27,7 +27,7 @@ from vo_sequences import COPTER, ROVER, ROVER_SCAN, StereoSequence, render_seque
 
 from sim.world.calibration_errors import RigError
 from slam.lie import pose_error, se3, so3_exp
-from slam.stereo import StereoCalibration, StereoMatcher, point_error, triangulate
+from slam.stereo import StereoCalibration, StereoMatcher, point_error, row_offset_sensitivity, triangulate
 from slam.vo import (
     StereoVO,
     VoException,
@@ -37,6 +37,7 @@ from slam.vo import (
     extrinsic_sensitivity,
     map_covariance,
     refine_pose,
+    row_offset_measurement,
     stereo_point_covariance,
     two_view_disparity_offset,
 )
@@ -58,6 +59,13 @@ def rover() -> StereoSequence:
 def rover_yawed() -> StereoSequence:
     """The rover sequence with the right camera turned by 0.05 deg about its y axis."""
     return render_sequence(ROVER, "head", duration_s=17, rig_error=RigError(R_right=so3_exp([0.0, math.radians(0.05), 0.0])))
+
+
+@pytest.fixture(scope="module")
+def rover_rolled() -> StereoSequence:
+    """The rover sequence with the right camera turned by -0.08 deg about its z axis (a
+    roll: -0.47 px) and 0.03 deg about its x axis (a pitch: 0.18 px), no yaw."""
+    return render_sequence(ROVER, "head", duration_s=17, rig_error=RigError(R_right=so3_exp(np.radians([0.03, 0.0, -0.08]))))
 
 
 @pytest.fixture(scope="module")
@@ -316,9 +324,9 @@ def test_disparity_offset_is_estimated_and_taken_off(rover_yawed, model, dense):
     large at the image centre, sim/world/calibration_errors.py): after the 17 s sequence
     (15 keyframes) each estimated coefficient is within 2.5 of its standard deviations of
     the truth, the yaw's has at least half of it, and the chained deltas drift less than
-    half as much as with the offsets left in (measured, yaw model sparse / SGBM: yaw 0.326
-    / 0.321 px with std 0.022 / 0.028, drift 0.14 / 0.27 % against 2.0 / 1.9 %; rotation
-    model sparse: 0.285 +- 0.061 px, roll 0.094 +- 0.139 px, drift 0.26 %)."""
+    half as much as with the offsets left in (measured, yaw model sparse / SGBM: yaw 0.303
+    / 0.314 px with std 0.035 / 0.037, drift 0.34 / 0.33 %; rotation model sparse: yaw
+    0.297 +- 0.035 px, pitch -0.000 +- 0.002, roll 0.011 +- 0.006 px, drift 0.38 %)."""
     seq = rover_yawed
     truth = np.array([0.0, seq.calib.focal_px * math.radians(0.05), 0.0])
     vo, estimated = vo_run(seq, VoParams(disparity_offset_model=model), dense=dense)
@@ -333,11 +341,54 @@ def test_disparity_offset_is_estimated_and_taken_off(rover_yawed, model, dense):
 
 @OFFSET_MODELS
 def test_disparity_offset_of_a_nominal_rig_stays_near_zero(rover, model, dense):
-    """Measured: yaw 0.032 / 0.028 / 0.022 px, the rotation model's roll and pitch 0.025
-    and 0.014 px."""
+    """Measured: yaw 0.008 / 0.014 / 0.006 px, the rotation model's pitch and roll -0.001
+    and 0.003 px."""
     vo = vo_run(rover, VoParams(disparity_offset_model=model), dense=dense)[0]
     assert np.all(np.abs(vo.disparity_offset) < 2.5 * np.sqrt(np.diag(vo.offset.covariance)))
     assert np.all(np.abs(vo.disparity_offset) < 0.1)
+
+
+@pytest.mark.parametrize("dense", [False, True], ids=["sparse", "sgbm"])
+def test_a_rolled_rig_is_estimated_from_the_rows(rover_rolled, dense):
+    """A roll of the right camera offsets the disparities by row (-y f θz) and the rows by
+    column (-x f θz). Two views alone hardly see it: the yaw model, which holds it at
+    zero, takes a yaw of about -0.17 px for it and the chained deltas drift 1.2-1.5 %.
+    The rotation model reads pitch and roll off the stereo matches' rows and the yaw off two
+    views: measured pitch 0.192 / 0.194 px (true 0.177), yaw 0.023 / 0.022 (0), roll
+    -0.492 / -0.478 (-0.473), drift 0.18 / 0.54 % (sparse / SGBM)."""
+    seq = rover_rolled
+    truth = seq.calib.focal_px * np.radians([0.03, 0.0, -0.08])
+    vo, estimated = vo_run(seq, VoParams(disparity_offset_model="rotation"), dense=dense)
+    yaw_only, yaw_results = vo_run(seq, VoParams(disparity_offset_model="yaw"), dense=dense)
+    std = np.sqrt(np.diag(vo.offset.covariance))
+    np.testing.assert_allclose(vo.disparity_offset[[0, 2]], truth[[0, 2]], rtol=0.15)
+    assert abs(vo.disparity_offset[1]) < max(2.5 * std[1], 0.05) < abs(yaw_only.disparity_offset[1])
+    assert evaluate(seq, estimated)["drift"] < 0.5 * evaluate(seq, yaw_results)["drift"]
+
+
+def test_row_offsets_measure_pitch_and_roll():
+    """Synthetic matches whose rows are off by ``r · c`` plus 0.05 px of noise, a tenth of
+    them mismatched by 0.5-2 px: the fit recovers pitch and roll, leaves the yaw as given
+    with no information on it, and its stated information (floor 0.1 px) is conservative."""
+    rng = np.random.default_rng(4)
+    truth = np.array([0.2, 0.3, -0.4])
+    errors, nees = [], []
+    for _ in range(200):
+        n = 250
+        uv = rng.uniform([10, 10], [310, 230], (n, 2))
+        disparity = rng.uniform(8, 30, n)
+        rows = row_offset_sensitivity(uv[:, 0], uv[:, 1], disparity, CAL) @ truth + rng.normal(0, 0.05, n)
+        bad = rng.random(n) < 0.1
+        rows[bad] += rng.choice([-1, 1], bad.sum()) * rng.uniform(0.5, 2.0, bad.sum())
+        rows[:5] = np.nan
+        c, info = row_offset_measurement(uv, disparity, rows, CAL, 0.1, yaw_px=truth[1])
+        assert c[1] == truth[1] and not info[1].any() and not info[:, 1].any()
+        e = (c - truth)[[0, 2]]
+        errors.append(e)
+        nees.append(e @ info[np.ix_([0, 2], [0, 2])] @ e)
+    assert np.all(np.abs(np.mean(errors, axis=0)) < 0.005)
+    assert np.mean(nees) < 2.0  # two degrees of freedom, conservative by the floor
+    assert row_offset_measurement(uv[:7], disparity[:7], rows[:7], CAL, 0.1) is None
 
 
 def test_standing_still_keeps_the_keyframe(rover):
