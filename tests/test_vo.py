@@ -238,8 +238,8 @@ def rotated_right_u(X: np.ndarray, theta: np.ndarray) -> np.ndarray:
 def test_two_view_disparity_offset_is_unbiased_with_the_information_it_states():
     """A keyframe whose right camera is turned (yaw, roll and pitch of 0.05-0.1 deg,
     projected exactly), a later image: the two-view adjustment recovers the three
-    coefficients ``c = f θ`` without noise (to the first-order model's 1 %); with the
-    modelled noise (0.2 px per pixel coordinate, so 0.28 px of disparity) its mean over
+    coefficients ``c = f θ`` without noise (to the first-order model's 1 %), and the yaw
+    alone with roll and pitch held at their values; with the modelled noise (0.2 px per pixel coordinate, so 0.28 px of disparity) its mean over
     draws is ``c`` and its errors scatter as its information says (mean NEES 3)."""
     rng = np.random.default_rng(6)
     n, sigma = 120, 0.2
@@ -255,6 +255,11 @@ def test_two_view_disparity_offset_is_unbiased_with_the_information_it_states():
             c, info = two_view_disparity_offset(T, uv0, ul - rotated_right_u(X, theta), uv1, CAL, sigma, axes=(1,))
             assert c[1] == pytest.approx(CAL.focal_px * theta[1], abs=0.01 * CAL.focal_px * abs(theta[1]) + 1e-6)
             assert c[0] == c[2] == 0.0 and info[1, 1] > 0 and np.count_nonzero(info) == 1
+        else:  # the yaw alone, roll and pitch held at their true values: returned as held, no information on them
+            held = CAL.focal_px * theta * [1.0, 0.0, 1.0]
+            c, info = two_view_disparity_offset(T, uv0, ul - rotated_right_u(X, theta), uv1, CAL, sigma, axes=(1,), held=held)
+            assert c[1] == pytest.approx(CAL.focal_px * theta[1], abs=0.01 * CAL.focal_px * abs(theta[1]) + 1e-6)
+            assert c[0] == held[0] and c[2] == held[2] and np.count_nonzero(info) == 1
     theta = np.radians([0.05, 0.05, -0.08])
     truth, measured = CAL.focal_px * theta, ul - rotated_right_u(X, theta)
     errors, nees = [], []
