@@ -416,7 +416,7 @@ def two_view_disparity_offset(
     drive (60 s, the LRU's head at 320x240, nominal rig) KLT's and the affine tracks' own
     errors of about 0.01 px made them 0.25 and 0.06 px (3 and 0.5 of their stated
     standard deviations), and a true roll of -0.48 px left out of the model pulled the
-    yaw's estimate to -0.18 px against its true 0.025. The stereo matches' rows show both
+    yaw's estimate to -0.18 px against its true 0. The stereo matches' rows show both
     directly (:func:`row_offset_measurement`), so the VO holds them there."""
     f, fb = calib.focal_px, calib.fb
     ray = np.stack([(uv0[:, 0] - calib.cx) / f, (uv0[:, 1] - calib.cy) / f, np.ones(len(uv0))], axis=1)
@@ -494,7 +494,7 @@ def row_offset_measurement(
     ``c_z`` to the measured row offsets ``row_offset`` (right row less left row, px; NaN
     where none) of the left pixels ``uv`` with their ``disparity``, after the yaw's small
     share (``-x y yaw_px``) is taken off. Matches beyond ``gate`` robust standard deviations
-    of the residuals are dropped (twice). The residuals' variance, at least
+    of the residuals are dropped (three passes). The residuals' variance, at least
     ``pixel_noise_px^2``, weighs the fit: on rendered Etna drives (KLT matches at 320x240)
     the residuals scatter by 0.03-0.04 px but the keyframes' estimates by about twice what
     that would give, so the floor (the VO's 0.1 px for refined tracks) keeps the stated
@@ -732,7 +732,7 @@ class StereoVO:
         return X, ok
 
     def _points_from_stereo(self, uv: np.ndarray, grey_l: np.ndarray, right: np.ndarray,
-                            dense_z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                            dense_z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """3D points by KLT along the rectified rows of the right image, forward-backward
         checked, triangulated with :func:`slam.stereo.triangulate` on the nominal calibration
         (no disparity offset taken off), with each match's row offset (right row less left
