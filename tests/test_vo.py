@@ -239,8 +239,9 @@ def test_two_view_disparity_offset_is_unbiased_with_the_information_it_states():
     """A keyframe whose right camera is turned (yaw, roll and pitch of 0.05-0.1 deg,
     projected exactly), a later image: the two-view adjustment recovers the three
     coefficients ``c = f θ`` without noise (to the first-order model's 1 %), and the yaw
-    alone with roll and pitch held at their values; with the modelled noise (0.2 px per pixel coordinate, so 0.28 px of disparity) its mean over
-    draws is ``c`` and its errors scatter as its information says (mean NEES 3)."""
+    alone with roll and pitch held at their values; with the modelled noise (0.2 px per
+    pixel coordinate, so 0.28 px of disparity) its mean over draws is ``c`` and its errors
+    scatter as its information says (mean NEES 3)."""
     rng = np.random.default_rng(6)
     n, sigma = 120, 0.2
     T = se3(so3_exp([0.01, 0.05, -0.01]), [0.05, -0.02, 0.4])
