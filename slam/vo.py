@@ -73,7 +73,7 @@ import cv2
 import numpy as np
 from scipy.stats import chi2
 
-from slam.lie import adjoint
+from slam.lie import adjoint, se3_inv
 from slam.stereo import (
     DEFAULT_PIXEL_ERROR,
     StereoCalibration,
@@ -834,7 +834,7 @@ class StereoVO:
         p = self.params
         c = self.calib
         if T_prior is not None and kf.T_prior is not None:  # prediction: the caller's poses
-            T_pred = np.linalg.inv(kf.T_prior) @ T_prior
+            T_pred = se3_inv(kf.T_prior) @ T_prior
         else:  # constant velocity in the VO's chained frame
             T_pred = np.linalg.inv(kf.T_odo) @ self._T_odo_prev @ self._motion
         R, tp = T_pred[:3, :3], T_pred[:3, 3]
