@@ -8,12 +8,20 @@ import math
 from types import SimpleNamespace
 
 import sim  # noqa: F401  (MUJOCO_GL)
+import cv2
 import mujoco
 import numpy as np
 import pytest
 
 from sim.scenario import REALISM_PROFILES, CalibrationRealism, CameraConfig, ImuRealism, WheelOdometryConfig, WheelRealism, load_scenario
-from sim.world.calibration_errors import CalibrationError, RigError, believed_body_camera, draw_calibration_errors, perturb_cameras
+from sim.world.calibration_errors import (
+    CalibrationError,
+    LensDistortion,
+    RigError,
+    believed_body_camera,
+    draw_calibration_errors,
+    perturb_cameras,
+)
 from sim.world.sensors import (
     IMU_PRESETS,
     ImuErrors,
@@ -119,6 +127,65 @@ def test_drawn_errors_have_the_configured_spread_and_encoders_only_on_heads():
     assert draw_calibration_errors(fixed, cfg, rng).pan_offset_rad == 0.0
     zero = draw_calibration_errors(head, CalibrationRealism(**{k: 0.0 for k in cfg.model_dump()}), rng)
     assert zero.rigs["head"].focal_scale == 1.0 and np.array_equal(zero.rigs["head"].R_right, np.eye(3))
+
+
+def test_lens_distortion_moves_what_each_pixel_shows_by_its_field():
+    """Pixel u shows the rendered image at u + shift(u): an object seen at u0 by the nominal
+    camera is delivered at u0 - shift(u0); the right camera keeps its own field."""
+    sphere = '<geom type="sphere" size="0.15" pos="0.5 0.3 1" rgba="1 0 0 1"/>'
+    model, data = camera_scene("0 0 3", "0 0 0", extra=sphere)
+
+    def red(img):
+        rows, cols = np.nonzero((img[..., 0].astype(int) - img[..., 1] > 80) & (img[..., 0] > 100))
+        return np.stack([cols, rows], axis=1).astype(float)
+
+    with StereoRenderer(model, RIG, CameraConfig(color="rgb")) as renderer:
+        nominal = renderer.render(data)
+    distortion = np.array([[0.0, 0.0, 0.01, -0.02], [0.0, 0.0, 0.0, 0.0]])  # left camera: tangential, px-sized near the sphere
+    error = RigError(distortion=distortion)
+    with StereoRenderer(model, RIG, CameraConfig(color="rgb"), error) as renderer:
+        distorted = renderer.render(data)
+    shift = error.lens_distortions(RIG)[0].shift
+
+    def shift_at(points):
+        return shift[:, np.rint(points[:, 1]).astype(int), np.rint(points[:, 0]).astype(int)].T
+
+    seen = red(nominal.left)  # where each red pixel is delivered: u with u + shift(u) = u0, by fixed-point steps
+    delivered = seen - shift_at(seen)
+    delivered = seen - shift_at(delivered)
+    assert np.linalg.norm(shift_at(seen).mean(axis=0)) > 1.0
+    np.testing.assert_allclose(red(distorted.left).mean(axis=0), delivered.mean(axis=0), atol=0.05)
+    np.testing.assert_array_equal(distorted.right, nominal.right)
+    np.testing.assert_array_equal(distorted.depth, nominal.depth)  # the truth stays along the nominal rays
+
+
+def test_lens_distortion_resamples_bilinearly_to_the_exact_position():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    image = cv2.GaussianBlur(rng.integers(0, 256, (48, 64)).astype(np.uint8), (5, 5), 1.0)
+    v, u = np.mgrid[0:48, 0:64]
+    shift = np.stack([0.3 * np.sin(u / 7.0) + 0.013, 0.2 * np.cos(v / 5.0) - 0.021])
+    exact = ndimage.map_coordinates(image.astype(np.float64), [v + shift[1], u + shift[0]], order=1, mode="nearest")
+    out = LensDistortion(shift)(image)
+    assert np.abs(out.astype(float) - exact).max() <= 0.5 + 1e-9  # only the 8-bit rounding
+    colour = LensDistortion(shift)(np.dstack([image, 255 - image, image]))
+    np.testing.assert_array_equal(colour[..., 0], out)
+
+
+def test_drawn_lens_distortion_has_the_configured_rms_and_leaves_the_other_errors():
+    rig = SimpleNamespace(stereo_rigs=[RIG], pan_tilt_head=True)
+    base = dict(stereo_rotation_deg=0.04, baseline_error=0.001, focal_error=0.002, camera_imu_rotation_deg=0.2,
+                camera_imu_translation_m=0.005, pan_tilt_offset_deg=0.1)
+    rng = np.random.default_rng(5)
+    draws = [draw_calibration_errors(rig, CalibrationRealism(**base, lens_distortion_mrad=0.2), rng) for _ in range(300)]
+    mean_square = np.mean([(d.rigs["head"].lens_distortions(RIG)[k].shift ** 2).sum(axis=0).mean() for d in draws for k in (0, 1)])
+    assert np.sqrt(mean_square) / RIG.focal_px == pytest.approx(0.2e-3, rel=0.15)
+    with_it = draw_calibration_errors(rig, CalibrationRealism(**base, lens_distortion_mrad=0.2), np.random.default_rng(9))
+    without = draw_calibration_errors(rig, CalibrationRealism(**base, lens_distortion_mrad=0.0), np.random.default_rng(9))
+    assert without.rigs["head"].lens_distortions(RIG) is None
+    np.testing.assert_array_equal(with_it.rigs["head"].R_right, without.rigs["head"].R_right)
+    assert with_it.pan_offset_rad == without.pan_offset_rad
 
 
 def test_believed_camera_transform_carries_extrinsic_and_encoder_errors():

@@ -389,7 +389,9 @@ class StereoRenderer:
     cameras must match it (``fovy == rig.vfov_deg``, right camera at ``+baseline`` along
     the left camera's x with the same orientation: checked, :class:`SensorError`
     otherwise), or, given the rig's calibration ``error``, match it changed by that
-    error. ``camera`` gives the colour mode and the depth range: before each
+    error; the error's lens distortion resamples the images (not the ground-truth
+    depth, which stays the depth along each pixel's nominal ray, the one the stack
+    assumes). ``camera`` gives the colour mode and the depth range: before each
     snapshot ``model.vis.map.znear * model.stat.extent`` is set to ``camera.znear_m`` (the
     near plane is the camera's own even when one model serves cameras with different
     settings), and the far plane to ``SKY_FAR_FACTOR * camera.zfar_m``; ground-truth
@@ -420,6 +422,7 @@ class StereoRenderer:
         self.rig = rig
         self.camera = camera
         self.error = error or RigError()
+        self._distortions = self.error.lens_distortions(rig)
         self._cam_ids = tuple(self._camera_id(name) for name in (rig.left_camera, rig.right_camera))
         for name, cid in zip((rig.left_camera, rig.right_camera), self._cam_ids):
             fovy, expected = float(model.cam_fovy[cid]), self.error.true_vfov_deg(rig)
@@ -534,6 +537,8 @@ class StereoRenderer:
             right = self._image(t.rgb)
         finally:
             self._free_scenes.put(scene)
+        if self._distortions is not None:
+            left, right = self._distortions[0](left), self._distortions[1](right)
         return StereoFrame(left, right, depth)
 
     def _image(self, rgb: np.ndarray) -> np.ndarray:
