@@ -894,8 +894,8 @@ class LightRealism(StrictModel):
 
 #: The values of each ``realism.profile``, and the one place they are set. ``ideal`` is
 #: the world before imperfections were modelled (for tests that need exact numbers);
-#: ``realistic`` is calibrated so that the filter's drift on Etna-like runs lands in the
-#: thesis's band (8.3: 0.7-2 % of distance; docs/realism.md); ``harsh`` doubles the
+#: ``realistic`` was tuned towards the thesis's filter drift on Etna-like runs (8.3: 0.7-2 %
+#: of distance; with the filter's later improvements it drifts less, docs/realism.md); ``harsh`` doubles the
 #: calibration, IMU and wheel errors. Sources of the ``realistic`` values:
 #: - camera: Allied Vision Guppy PRO F-125B (thesis 7.1), with the sources of its noise,
 #:   exposure, vignetting and response spread in sim/world/imaging.py;

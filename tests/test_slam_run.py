@@ -117,6 +117,7 @@ def test_threaded_and_inline_images_give_the_same_metrics(runs, tmp_path):
     detections, maps, trajectories (sim/run/pipeline.py)."""
     threaded, inline = (_without_timings(results_folder.write(run, tmp_path / name)) for run, name in zip(runs, ("threaded", "inline")))
     assert threaded["robots"]["lru1"]["stereo"] and threaded["robots"]["lru1"]["imaging"]
+    assert threaded["robots"]["lru1"]["calibration"]["head"]["lens_disparity_error_rms_px"] > 0  # the realistic world's lenses
     assert threaded == inline
 
 

@@ -67,6 +67,7 @@ from sim.evaluation.trajectory import ErrorOverTime
 from sim.run.faults import fault_metrics
 from sim.run.runner import Run
 from sim.scenario import Scenario, dump_scenario
+from sim.world.calibration_errors import CalibrationError
 from slam import graph_export
 from slam.graph import MultiRobotGraph
 
@@ -163,6 +164,7 @@ def _robot_results(run: Run, out: Path, name: str, truth: inputs.TeamTruth, reco
         "camera_frames": log.frames,
         "stereo": stereo,
         "imaging": _imaging(log),
+        "calibration": _calibration(run.calibration_errors[name], robot.stereo_rigs),
         **sections,
         "faults": fault_metrics(runtime.onboard, runtime.faults, run.sim_time),  # injected failures (sim/run/faults.py)
         "health": inputs.health_report(runtime.onboard, run.mission_s) if runtime.onboard is not None else None,
@@ -197,6 +199,25 @@ def _imaging(log) -> dict[str, Any]:
             "gain": {"median": float(np.median(a[:, 1])), "max": float(a[:, 1].max())},
             "saturated_share": {"mean": float(a[:, 2].mean()), "max": float(a[:, 2].max())},
             "frames_over_1_percent_saturated": int(np.count_nonzero(a[:, 2] > 0.01)),
+        }
+    return out
+
+
+def _calibration(errors: CalibrationError, rigs) -> dict[str, Any]:
+    """The calibration errors drawn for a robot (sim/world/calibration_errors.py), per rig:
+    the right camera's rotation as disparity offset coefficients (px), baseline and focal
+    scales, and the lens distortion's RMS over the image per camera and of the disparity
+    error it causes (left less right shift along x, px); the pan-tilt encoders' offsets."""
+    out: dict[str, Any] = {"pan_offset_deg": float(np.degrees(errors.pan_offset_rad)), "tilt_offset_deg": float(np.degrees(errors.tilt_offset_rad))}
+    for rig in rigs:
+        e = errors.rigs[rig.name]
+        lens = e.lens_distortions(rig)
+        out[rig.name] = {
+            "disparity_offset_coefficients_px": e.disparity_offset_coefficients_px(rig).tolist(),
+            "baseline_scale": e.baseline_scale,
+            "focal_scale": e.focal_scale,
+            "lens_distortion_rms_px": [0.0, 0.0] if lens is None else [float(np.sqrt((d.shift**2).sum(axis=0).mean())) for d in lens],
+            "lens_disparity_error_rms_px": 0.0 if lens is None else float(np.sqrt(np.mean((lens[0].shift[0] - lens[1].shift[0]) ** 2))),
         }
     return out
 

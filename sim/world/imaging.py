@@ -23,8 +23,9 @@ global shutter, greyscale, 8-bit output), in this order:
    error), clipped and rounded to 8 bit.
 6. auto exposure: from the left output's mean, the exposure and gain of the next frame.
 
-Not modelled: lens distortion (the renderer's pinhole stays exact, as the stereo
-pipeline expects rectified images), dark current and hot pixels (negligible at
+The lens distortion left after rectification is a calibration error
+(:mod:`sim.world.calibration_errors`), applied by the renderer before this. Not
+modelled: dark current and hot pixels (negligible at
 exposures of milliseconds), fixed-pattern noise (DSNU/PRNU) apart from the right
 camera's overall response error, blooming and vertical smear of the CCD (a saturated
 pixel does not spill into its neighbours or its column), rolling shutter (the Guppy is
