@@ -1600,7 +1600,7 @@ def load_scenario(source: str | Path | dict, overrides: list[str] | None = None,
         base_dir = path.parent if base_dir is None else base_dir
         label = str(path)
         if not path.is_file():
-            raise ScenarioError(label, ["file not found"])
+            raise ScenarioError(label, ["is a directory, not a YAML file" if path.is_dir() else "file not found"])
         try:
             raw = safe_yaml.load(path)
         except safe_yaml.YamlError as exc:

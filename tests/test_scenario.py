@@ -184,6 +184,7 @@ def test_tag_ids_are_distinct_and_dump_reloads():
 
 def test_missing_file_and_bad_yaml(tmp_path):
     assert problems(tmp_path / "nope.yaml") == ["file not found"]
+    assert problems(tmp_path) == ["is a directory, not a YAML file"]
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: [unclosed")
     assert problems(bad)[0].startswith("not valid YAML")

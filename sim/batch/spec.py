@@ -248,7 +248,7 @@ def load_batch(path: str | Path, extra: list[str] | None = None, max_seeds: int 
     path = Path(path)
     label = str(path)
     if not path.is_file():
-        raise BatchError(label, ["file not found"])
+        raise BatchError(label, ["is a directory, not a YAML file" if path.is_dir() else "file not found"])
     try:
         data = safe_yaml.load(path)
     except safe_yaml.YamlError as exc:
