@@ -131,7 +131,8 @@ def test_drawn_errors_have_the_configured_spread_and_encoders_only_on_heads():
 
 def test_lens_distortion_moves_what_each_pixel_shows_by_its_field():
     """Pixel u shows the rendered image at u + shift(u): an object seen at u0 by the nominal
-    camera is delivered at u0 - shift(u0); the right camera keeps its own field."""
+    camera is delivered at u0 - shift(u0); a camera whose field is zero (here the right
+    one) delivers its render unchanged, and the ground-truth depth is not resampled."""
     sphere = '<geom type="sphere" size="0.15" pos="0.5 0.3 1" rgba="1 0 0 1"/>'
     model, data = camera_scene("0 0 3", "0 0 0", extra=sphere)
 
