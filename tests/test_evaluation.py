@@ -40,6 +40,7 @@ def test_constant_offset_is_the_unaligned_ate_and_vanishes_when_aligned():
     assert m["final_error_m"] == pytest.approx(0.5)
     assert m["distance_m"] == pytest.approx(5 * math.pi, rel=1e-3)
     assert m["final_error_percent_of_distance"] == pytest.approx(50 / (5 * math.pi), rel=1e-3)
+    assert m["mean_error_percent_of_distance"] == pytest.approx(50 / (5 * math.pi), rel=1e-3)
     assert np.allclose(errors.position_m, 0.5) and np.array_equal(errors.t, t)
     assert "error_over_time" not in m  # the series travel apart from the metrics
 
@@ -58,6 +59,9 @@ def test_yaw_drift_shows_in_yaw_error_and_rpe():
     assert m["rpe_per_m"]["mean"] > 0.0
     assert m["ate_m"]["max"] > m["ate_aligned_m"]["max"]
     assert errors.yaw_deg[-1] == pytest.approx(10, abs=1e-6)
+    # the error grows along the arc: its mean over the distance stays below the final error's share
+    assert m["mean_error_percent_of_distance"] == pytest.approx(100 * errors.position_m.mean() / m["distance_m"], rel=1e-9)
+    assert m["mean_error_percent_of_distance"] < 0.5 * m["final_error_percent_of_distance"]
 
 
 def test_an_exact_estimate_between_truth_samples_scores_no_error():
