@@ -422,7 +422,7 @@ def two_view_disparity_offset(
     ray = np.stack([(uv0[:, 0] - calib.cx) / f, (uv0[:, 1] - calib.cy) / f, np.ones(len(uv0))], axis=1)
     d = np.asarray(disparity, dtype=float).copy()
     ok = np.isfinite(d) & (d > 0)
-    ray, measured, d, uv1 = ray[ok], d[ok], d[ok], np.asarray(uv1, dtype=float)[ok]
+    ray, measured, uv1 = ray[ok], d[ok], np.asarray(uv1, dtype=float)[ok]
     axes = list(axes)
     k = len(axes)
     sens_all = disparity_offset_sensitivity(uv0[ok, 0], uv0[ok, 1], measured, calib)

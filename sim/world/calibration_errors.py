@@ -79,8 +79,7 @@ class RigError:
         if not np.any(self.distortion):
             return None
         f = rig.focal_px * self.focal_scale
-        u, v = np.meshgrid(np.arange(rig.width, dtype=np.float64), np.arange(rig.height, dtype=np.float64))
-        basis = _distortion_basis((u - rig.intrinsics[0, 2]) / f, (v - rig.intrinsics[1, 2]) / f)
+        basis = _distortion_basis(*_normalised_grid(rig, f))
         left, right = (LensDistortion(np.tensordot(coefficients, basis, axes=1) * f) for coefficients in self.distortion)
         return left, right
 
@@ -137,6 +136,12 @@ class CalibrationError:
     tilt_offset_rad: float = 0.0
 
 
+def _normalised_grid(rig: StereoRig, focal_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every pixel's normalised image coordinates ``(x, y)``, (H, W) each, for the focal length ``focal_px``."""
+    u, v = np.meshgrid(np.arange(rig.width, dtype=np.float64), np.arange(rig.height, dtype=np.float64))
+    return (u - rig.intrinsics[0, 2]) / focal_px, (v - rig.intrinsics[1, 2]) / focal_px
+
+
 def _distortion_basis(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """The Brown-Conrady terms ``k1, k2, p1, p2`` at normalised image coordinates: (4, 2, *x.shape)."""
     r2 = x * x + y * y
@@ -151,9 +156,7 @@ def _distortion_basis(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 def distortion_term_stds(rig: StereoRig, rms_rad: float) -> np.ndarray:
     """Stds of ``(k1, k2, p1, p2)`` such that each term adds a quarter of the mean square
     residual over ``rig``'s image, whose expectation is then ``rms_rad ** 2``."""
-    u, v = np.meshgrid(np.arange(rig.width), np.arange(rig.height))
-    x, y = (u - rig.intrinsics[0, 2]) / rig.focal_px, (v - rig.intrinsics[1, 2]) / rig.focal_px
-    mean_square = (_distortion_basis(x, y) ** 2).sum(axis=1).mean(axis=(1, 2))
+    mean_square = (_distortion_basis(*_normalised_grid(rig, rig.focal_px)) ** 2).sum(axis=1).mean(axis=(1, 2))
     return rms_rad / np.sqrt(4 * mean_square)
 
 
