@@ -248,7 +248,7 @@ def delta_in_body_frame(
     X_kf = np.asarray(T_body_cam_kf, dtype=float)
     X_cur = X_kf if T_body_cam_cur is None else np.asarray(T_body_cam_cur, dtype=float)
     Ad = adjoint(X_cur)
-    return X_kf @ T_kf_cur @ np.linalg.inv(X_cur), Ad @ cov @ Ad.T
+    return X_kf @ T_kf_cur @ se3_inv(X_cur), Ad @ cov @ Ad.T
 
 
 def extrinsic_sensitivity(T_kf_cur: np.ndarray, T_body_cam: np.ndarray) -> np.ndarray:
@@ -261,7 +261,7 @@ def extrinsic_sensitivity(T_kf_cur: np.ndarray, T_body_cam: np.ndarray) -> np.nd
     for all deltas, where a covariance per delta would average it out. On a pan-tilt
     head that moved between the two captures, ``e`` is taken as the same in both camera
     frames (the head's own offsets then differ between them: an approximation)."""
-    A = adjoint(np.linalg.inv(np.asarray(T_kf_cur, dtype=float))) - np.eye(6)
+    A = adjoint(se3_inv(np.asarray(T_kf_cur, dtype=float))) - np.eye(6)
     return -adjoint(np.asarray(T_body_cam, dtype=float)) @ A
 
 
@@ -643,7 +643,7 @@ class StereoVO:
         measured = meas is not None and meas.ok
         # the velocity is known when this and the previous pose were measured (or this one against the previous)
         if measured and (self._prev_measured or ref.frame_id == self._prev_id):
-            self._motion = np.linalg.inv(self._T_odo_prev) @ T_odo_cur
+            self._motion = se3_inv(self._T_odo_prev) @ T_odo_cur
         else:
             self._motion = np.eye(4)
         self._T_odo_prev, self._prev_id, self._prev_measured = T_odo_cur, frame_id, measured
@@ -836,7 +836,7 @@ class StereoVO:
         if T_prior is not None and kf.T_prior is not None:  # prediction: the caller's poses
             T_pred = se3_inv(kf.T_prior) @ T_prior
         else:  # constant velocity in the VO's chained frame
-            T_pred = np.linalg.inv(kf.T_odo) @ self._T_odo_prev @ self._motion
+            T_pred = se3_inv(kf.T_odo) @ self._T_odo_prev @ self._motion
         R, tp = T_pred[:3, :3], T_pred[:3, 3]
         Xc = (kf.X - tp) @ R
         with np.errstate(divide="ignore", invalid="ignore"):
