@@ -323,6 +323,13 @@ class CameraConfig(StrictModel):
     depth_ground_truth_every: int = Field(
         1, ge=0, description="render ground-truth depth every n-th frame (0: never)"
     )
+    flat_field: bool = Field(
+        True,
+        description=(
+            "the camera pipeline divides each image by the lens's calibrated relative illumination (flat-field correction of "
+            "realism.camera.vignetting) before stereo, VO and detection; false: the images keep their vignetting"
+        ),
+    )
     znear_m: PositiveFloat = Field(0.05, description="near clipping plane of the renderer")
     zfar_m: PositiveFloat = Field(60.0, description="far clipping plane; ground-truth depth beyond it is inf")
 

@@ -75,7 +75,9 @@ class RockyScene:
         self.camera = CameraConfig(width=WIDTH, height=HEIGHT)
         self.calibration = StereoCalibration.from_intrinsics(self.rig.intrinsics, BASELINE_M, WIDTH, HEIGHT)
         self.stereo = StereoMatcher(self.calibration)
-        self.imaging = None if imaging is None else CameraImaging(imaging, WIDTH, HEIGHT, self.calibration.focal_px, np.random.default_rng(seed))
+        self.imaging = None if imaging is None else CameraImaging(
+            imaging, WIDTH, HEIGHT, self.calibration.focal_px, np.random.default_rng(seed), self.camera.flat_field
+        )
         self._left = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, self.rig.left_camera)
 
     @cached_property

@@ -23,6 +23,17 @@ global shutter, greyscale, 8-bit output), in this order:
    error), clipped and rounded to 8 bit.
 6. auto exposure: from the left output's mean, the exposure and gain of the next frame.
 
+With ``flat_field`` the camera pipeline divides the signal by the vignetting map before
+step 5, as a calibrated pipeline's flat-field (shading) correction does with the lens's
+relative illumination measured in the lab (at the camera's internal precision, before
+the 8-bit output): the corners come out as bright as the centre, with their lower
+signal-to-noise ratio, and saturate where the sensor did. The map is the true one (a
+flat field measured against an integrating sphere is good to about a per cent; no
+residual is modelled). Without it, brightness falls towards the corners, which a
+tracker assuming brightness constancy (KLT, :mod:`slam.vo`) reads as motion: on Etna it
+was the largest single cause of the graph's overconfidence (docs/slam.md, "Which
+errors").
+
 The lens distortion left after rectification is a calibration error
 (:mod:`sim.world.calibration_errors`), applied by the renderer before this. Not
 modelled: dark current and hot pixels (negligible at
@@ -268,9 +279,10 @@ def _auto_exposure(mean_level: float, exposure_s: float, gain: float, params: Im
 class CameraImaging:
     """Image formation of one stereo rig (both cameras share exposure and gain, as a
     hardware-synchronised pair does). See the module docstring for the model; thesis
-    6.2.1 (noise, discretisation, exposure), 7.1 (cameras), 9.3 (overexposure)."""
+    6.2.1 (noise, discretisation, exposure), 7.1 (cameras), 9.3 (overexposure).
+    ``flat_field``: the pipeline corrects the vignetting (module docstring)."""
 
-    def __init__(self, params: ImagingParams, width: int, height: int, focal_px: float, rng: np.random.Generator):
+    def __init__(self, params: ImagingParams, width: int, height: int, focal_px: float, rng: np.random.Generator, flat_field: bool = False):
         lo, hi = params.exposure_range_s
         if not 0 < lo <= hi:
             raise ValueError(f"exposure_range_s must be 0 < min <= max, got {params.exposure_range_s}")
@@ -285,7 +297,10 @@ class CameraImaging:
         self._gain = 1.0
         self._saturated_share = 0.0
         # Radiance scale per pixel: 1/255 x relative illumination.
-        self._scale = _vignetting_map(width, height, focal_px, params.vignetting) / np.float32(255.0)
+        relative_illumination = _vignetting_map(width, height, focal_px, params.vignetting)
+        self._scale = relative_illumination / np.float32(255.0)
+        # flat-field correction: the inverse of the relative illumination (None: none, or nothing to correct)
+        self._flat_field = np.float32(1.0) / relative_illumination if flat_field and params.vignetting else None
         self._identity = not (
             params.noise or params.auto_exposure or params.motion_blur or params.vignetting or params.right_gain_error
         )
@@ -327,6 +342,7 @@ class CameraImaging:
             self._saturated_share = float(np.count_nonzero(left == 255)) / left.size
             return left, right
         scale = self._scale if left.ndim == 2 else self._scale[:, :, None]
+        flat = self._flat_field if self._flat_field is None or left.ndim == 2 else self._flat_field[:, :, None]
         if left.shape not in self._work:
             self._work[left.shape] = tuple(np.empty(left.shape, np.float32) for _ in range(4))
         radiance_buf, blurred_buf, *scratch = self._work[left.shape]
@@ -338,6 +354,8 @@ class CameraImaging:
             electrons = _electrons(radiance, p, self._exposure_s, self._rng, scratch)
             if i == 0:
                 self._saturated_share = float(np.count_nonzero(electrons >= p.full_well_e)) / electrons.size
+            if flat is not None:
+                electrons *= flat
             response = 1.0 if i == 0 else 1.0 + p.right_gain_error
             out.append(_digitise(electrons, p.full_well_e, self._gain * response))
         if p.auto_exposure:
