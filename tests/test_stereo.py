@@ -273,10 +273,11 @@ def test_noise_in_a_textureless_sky_gives_no_depth_in_the_mapping_range():
     pixel keeps a depth in range, and the ground keeps nearly all of its own."""
     from stereo_scenes import procedural_terrain_scene
 
+    from sim.scenario import CameraConfig
     from sim.world.imaging import GUPPY_PRO_F125B, CameraImaging
 
     frame, cal = _render(procedural_terrain_scene(320, 240, pitch_deg=17.0, preset="etna"))
-    imaging = CameraImaging(GUPPY_PRO_F125B, 320, 240, cal.focal_px, np.random.default_rng(1))
+    imaging = CameraImaging(GUPPY_PRO_F125B, 320, 240, cal.focal_px, np.random.default_rng(1), flat_field=CameraConfig().flat_field)
     for _ in range(20):  # let the auto exposure settle on the scene
         left, right = imaging.expose(frame.left, frame.right)
     matcher = StereoMatcher(cal)

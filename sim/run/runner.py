@@ -360,7 +360,8 @@ class Run:
         for rig in robot.stereo_rigs:
             params = imaging_params(realism.camera, self.streams.rng("imaging", robot.name, rig.name))
             rng = self.streams.rng("image_noise", robot.name, rig.name)
-            imaging.append(None if params is None else CameraImaging(params, rig.width, rig.height, rig.focal_px, rng, cfg.camera.flat_field))
+            flat_field = cfg.camera.flat_field
+            imaging.append(None if params is None else CameraImaging(params, rig.width, rig.height, rig.focal_px, rng, flat_field=flat_field))
         matchers = [StereoMatcher(calibration(rig)) for rig in robot.stereo_rigs]
         onboard = None
         if self.scenario.slam.enabled:

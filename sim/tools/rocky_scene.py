@@ -76,7 +76,7 @@ class RockyScene:
         self.calibration = StereoCalibration.from_intrinsics(self.rig.intrinsics, BASELINE_M, WIDTH, HEIGHT)
         self.stereo = StereoMatcher(self.calibration)
         self.imaging = None if imaging is None else CameraImaging(
-            imaging, WIDTH, HEIGHT, self.calibration.focal_px, np.random.default_rng(seed), self.camera.flat_field
+            imaging, WIDTH, HEIGHT, self.calibration.focal_px, np.random.default_rng(seed), flat_field=self.camera.flat_field
         )
         self._left = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, self.rig.left_camera)
 

@@ -282,7 +282,7 @@ class CameraImaging:
     6.2.1 (noise, discretisation, exposure), 7.1 (cameras), 9.3 (overexposure).
     ``flat_field``: the pipeline corrects the vignetting (module docstring)."""
 
-    def __init__(self, params: ImagingParams, width: int, height: int, focal_px: float, rng: np.random.Generator, flat_field: bool = False):
+    def __init__(self, params: ImagingParams, width: int, height: int, focal_px: float, rng: np.random.Generator, *, flat_field: bool):
         lo, hi = params.exposure_range_s
         if not 0 < lo <= hi:
             raise ValueError(f"exposure_range_s must be 0 < min <= max, got {params.exposure_range_s}")
