@@ -819,6 +819,11 @@ class SlamConfig(StrictModel):
         SlamParam(FilterParams, "extrinsic_translation_std"),
         description="std per axis of the VO camera-IMU calibration's translation, held by the filter as consider parameters",
     )
+    vo_focal_scale_std: NonNegFloat = slam_field(
+        SlamParam(FilterParams, "focal_scale_std"),
+        description="relative std of the VO rig's focal length (both cameras alike), held by the filter as a consider parameter:"
+        " it scales the VO's rotations (0: none)",
+    )
     vo_keyframe_map_error: bool = slam_field(
         SlamParam(FilterParams, "keyframe_map_error"),
         description="the VO deltas' error from their keyframe's 3D points enters once per keyframe, not with every delta (false: thesis 4.1.1)",

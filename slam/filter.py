@@ -34,8 +34,9 @@ for ``k`` are zero; the other rows and every other block of the update are the o
 Kalman update's, since no measurement here depends on ``k`` directly.
 
 The VO camera's calibration error ``e`` (``X_true = X Exp(e)``, six entries
-``[rotation, translation]`` in the camera tangent, after ``k``) and the VO rig's
-disparity offset (one entry, after ``e``) are held the same way: a
+``[rotation, translation]`` in the camera tangent, after ``k``), the VO rig's
+disparity offset (one entry, after ``e``) and its relative focal length error (one entry,
+after the offset) are held the same way: a
 fixed error errs every delta the same way for the same motion, which a covariance per
 delta (white noise) averages out over the deltas, and the filter became sure of a tilt
 and a vertical velocity the calibration had biased (docs/realism.md). A delta's
@@ -51,7 +52,7 @@ Covariance orderings returned
 -----------------------------
 - :meth:`covariance`: 15x15 core block in the order above (``dtheta`` left, local frame).
 - :meth:`full_covariance`: core, the consider parameters that are modelled (``k``, ``e``,
-  the disparity offset, in this order), then six per clone ``[dtheta_c, dp_c]``, clones
+  the disparity offset, the focal error, in this order), then six per clone ``[dtheta_c, dp_c]``, clones
   in :attr:`clone_ids` order.
 - :meth:`pose_covariance`: 6x6 ``[rotation, translation]`` of :meth:`pose`, *right*
   perturbation in the body frame, ``T_true = T Exp([omega, rho])`` to first order
@@ -120,6 +121,7 @@ CORE = 15  # [dp, dv, dtheta, db_a, db_w]
 MISALIGNMENT = 2  # consider [k_x, k_y]: the accelerometer's z-axis misalignment, when modelled
 EXTRINSIC = 6  # consider [rotation, translation]: the VO camera's calibration error, when modelled
 DISPARITY = 1  # consider: the VO rig's disparity offset (px), when modelled
+FOCAL = 1  # consider: the VO rig's relative focal length error, when modelled
 CLONE = 6  # [dtheta_c, dp_c]
 _P, _V, _TH, _BA, _BW = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
 _TIME_EPS = 1e-6  # s: a clone time must match the last propagated time this closely
@@ -168,6 +170,10 @@ class FilterParams:
     ``disparity_bias_std`` (px): a disparity offset common to all points of the VO rig (a
     residual yaw of the rectified pair; 0.25 px: 0.04 deg at the LRU's 338 px focal
     length), one more consider parameter, seen through each delta's sensitivity.
+    ``focal_scale_std`` (relative): the VO rig's focal length error, both cameras alike
+    (a calibration's residual; 0.2 %), one more consider parameter seen through each
+    delta's sensitivity (:func:`slam.vo.focal_scale_sensitivity`): it scales the deltas'
+    rotations, so that a net turn leaves a heading error the gyro has to tell apart.
     ``keyframe_map_error``: the VO deltas' share of error from their keyframe's 3D points
     goes onto the keyframe's clone once (:meth:`LocalReferenceFilter.update_relative_pose`,
     ``keyframe_map_cov``) instead of into every delta; False: each delta with its whole
@@ -195,6 +201,7 @@ class FilterParams:
     extrinsic_rotation_std: float = math.radians(0.2)
     extrinsic_translation_std: float = 0.005
     disparity_bias_std: float = 0.25
+    focal_scale_std: float = 0.002
     keyframe_map_error: bool = True
 
     def __post_init__(self):
@@ -215,6 +222,7 @@ class FilterParams:
             "extrinsic_rotation_std",
             "extrinsic_translation_std",
             "disparity_bias_std",
+            "focal_scale_std",
         ):
             if not getattr(self, name) >= 0.0:
                 raise FilterException(f"FilterParams.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -384,19 +392,21 @@ class LocalReferenceFilter:
 
     def _init_consider(self) -> None:
         """The consider parameters' place after the core (``_k``: misalignment, ``_e``:
-        extrinsics, ``_d``: disparity offset; empty slices when not modelled), the first
+        extrinsics, ``_d``: disparity offset, ``_f``: focal error; empty slices when not modelled), the first
         clone entry ``_base`` and their prior covariance ``_Pcc``, which the Schmidt updates
         keep."""
         params = self.params
         nk = MISALIGNMENT if params.accel_misalignment_std > 0.0 else 0
         ne = EXTRINSIC if max(params.extrinsic_rotation_std, params.extrinsic_translation_std) > 0.0 else 0
         nd = DISPARITY if params.disparity_bias_std > 0.0 else 0
+        nf = FOCAL if params.focal_scale_std > 0.0 else 0
         self._k = slice(CORE, CORE + nk)
         self._e = slice(CORE + nk, CORE + nk + ne)
         self._d = slice(CORE + nk + ne, CORE + nk + ne + nd)
-        self._base = CORE + nk + ne + nd
+        self._f = slice(self._d.stop, self._d.stop + nf)
+        self._base = self._f.stop
         std = [params.accel_misalignment_std] * nk + ([params.extrinsic_rotation_std] * 3 + [params.extrinsic_translation_std] * 3) * (ne > 0)
-        std += [params.disparity_bias_std] * nd
+        std += [params.disparity_bias_std] * nd + [params.focal_scale_std] * nf
         self._Pcc = np.diag(np.square(std))
 
     def _init_clones(self) -> None:
@@ -667,6 +677,7 @@ class LocalReferenceFilter:
         extrinsic_jacobian: np.ndarray | None = None,
         disparity_sensitivity: np.ndarray | None = None,
         keyframe_map_cov: np.ndarray | None = None,
+        focal_sensitivity: np.ndarray | None = None,
     ) -> float:
         """Visual-odometry delta pose ``T_kf_cur`` (body frames of the two clones) with
         6x6 covariance ``[rotation, translation]``, right perturbation. Applied as if it
@@ -680,7 +691,8 @@ class LocalReferenceFilter:
         where the filter holds ``e`` as consider parameters, the update accounts for it
         through them (the same ``e`` in every delta), else it is ignored.
         ``disparity_sensitivity`` (6,): the same for the rig's disparity offset, in the
-        body delta's tangent (per pixel).
+        body delta's tangent (per pixel); ``focal_sensitivity`` (6,) for its relative focal
+        length error.
 
         ``keyframe_map_cov`` (6x6, the delta's tangent): the error the keyframe's 3D points
         put into every delta against it (:func:`slam.vo.map_covariance`), left out of
@@ -700,7 +712,7 @@ class LocalReferenceFilter:
             raise FilterException("T_kf_cur must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
         C = _covariance(cov, 6, "cov")
         M = None if keyframe_map_cov is None else _covariance(keyframe_map_cov, 6, "keyframe_map_cov", semidefinite=True)
-        J = self._consider_jacobian(extrinsic_jacobian, disparity_sensitivity)
+        J = self._consider_jacobian(extrinsic_jacobian, disparity_sensitivity, focal_sensitivity)
         if kf_clone_id == cur_clone_id:
             raise FilterException(f"a relative pose needs two different clones, got {kf_clone_id!r} twice")
         ks = [self._clone_index(kf_clone_id), self._clone_index(cur_clone_id)]
@@ -721,12 +733,13 @@ class LocalReferenceFilter:
         self._log.insert(j, event)
         return self._replay_from(i, event)
 
-    def _consider_jacobian(self, extrinsic_jacobian, disparity_sensitivity) -> tuple[np.ndarray, np.ndarray] | None:
+    def _consider_jacobian(self, extrinsic_jacobian, disparity_sensitivity, focal_sensitivity) -> tuple[np.ndarray, np.ndarray] | None:
         """The consider parameters a relative pose sees and its Jacobian over them (None: none)."""
         idx, cols = [], []
         for given, block, shape, name in (
             (extrinsic_jacobian, self._e, (6, EXTRINSIC), "extrinsic_jacobian"),
             (disparity_sensitivity, self._d, (6,), "disparity_sensitivity"),
+            (focal_sensitivity, self._f, (6,), "focal_sensitivity"),
         ):
             if given is None or block.stop == block.start:
                 continue

@@ -274,8 +274,10 @@ class LocalEstimator:
                     cov_b = (V * np.maximum(lam, 1e-9 * lam[-1])) @ V.T
                 J = extrinsic_sensitivity(result.T_kf_cur, X_cur)
                 s = None if result.disparity_sensitivity is None else Ad @ result.disparity_sensitivity
+                s_f = None if result.focal_sensitivity is None else Ad @ result.focal_sensitivity
                 applied = self.filter.update_relative_pose(
-                    kf, result.frame_id, T_b, cov_b, extrinsic_jacobian=J, disparity_sensitivity=s, keyframe_map_cov=map_b
+                    kf, result.frame_id, T_b, cov_b, extrinsic_jacobian=J, disparity_sensitivity=s, keyframe_map_cov=map_b,
+                    focal_sensitivity=s_f,
                 )
                 if applied > self.filter.relative_pose_gate:
                     stats.reject("gate")

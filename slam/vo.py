@@ -28,8 +28,10 @@ What it does per stereo pair
    out over the points; a calibration error does not, and it errs every delta alike. So
    each delta also carries its sensitivity to the rig's calibration errors (our
    addition): to a disparity offset common to all points
-   (:func:`disparity_bias_sensitivity`, ``VoResult.disparity_sensitivity``) and to the
-   camera-IMU extrinsics (:func:`extrinsic_sensitivity`); the filter holds both errors as
+   (:func:`disparity_bias_sensitivity`, ``VoResult.disparity_sensitivity``), to a
+   relative focal length error of both cameras (:func:`focal_scale_sensitivity`,
+   ``VoResult.focal_sensitivity``: mostly a scale of the delta's rotation) and to the
+   camera-IMU extrinsics (:func:`extrinsic_sensitivity`); the filter holds these errors as
    consider parameters (slam.filter, module docstring).
 5. Keyframe policy: a history of ``n_keyframes`` (thesis 4.1.1: n = 5). The current
    frame becomes a keyframe when the inliers fall below a share of the keyframe's
@@ -202,6 +204,7 @@ class VoResult:
     matches: int = 0  # tracked features before PnP (diagnostics)
     disparity_sensitivity: np.ndarray | None = None  # (6,) how T_kf_cur moves per pixel of disparity offset (:func:`disparity_bias_sensitivity`)
     map_cov: np.ndarray | None = None  # 6x6 share of ``cov`` from the keyframe's points, alike in all its deltas (:func:`map_covariance`)
+    focal_sensitivity: np.ndarray | None = None  # (6,) how T_kf_cur moves per unit of relative focal error (:func:`focal_scale_sensitivity`)
 
 
 @dataclass
@@ -228,6 +231,7 @@ class _Measurement:
     disparity_sensitivity: np.ndarray | None = None
     map_cov: np.ndarray | None = None
     inlier_ids: np.ndarray | None = None  # the inliers' indices among the keyframe's points
+    focal_sensitivity: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- geometry helpers
@@ -377,6 +381,29 @@ def disparity_bias_sensitivity(
     _, J, W, JpRt = linearised or _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
     H = J.reshape(-1, 6).T @ (W @ J).reshape(-1, 6)
     dr = np.einsum("nij,nj->ni", JpRt, X * (X[:, 2] / fb)[:, None])
+    g = np.einsum("nki,nkl,nl->i", J, W, dr)
+    return np.linalg.solve(H, g)
+
+
+def focal_scale_sensitivity(
+    T: np.ndarray, X: np.ndarray, cov_X: np.ndarray, uv: np.ndarray, K: np.ndarray, pixel_noise_px: float, linearised: tuple | None = None
+) -> np.ndarray:
+    """How the refined pose moves (6-vector, the tangent of :func:`refine_pose`) per unit of
+    a relative focal length error ``ε`` common to both cameras (true focal ``f (1 + ε)``, the
+    stack's ``f``): a calibration error that, like the disparity offset, errs every delta
+    alike. The keyframe's triangulated points come out ``(x, y, z / (1 + ε))`` (lateral
+    coordinates exact, depth scaled: ``dX/dε = (0, 0, -z)``) and the current image's pixels
+    lie ``ε (u - c)`` further from the principal point, so at the true pose the residuals
+    move by ``dr_i/dε = (uv_i - c) + J_p R^T (0, 0, z_i)`` and the pose by ``H^-1 Σ J_i^T W_i
+    dr_i/dε`` (the Gauss-Newton step of the perturbed problem, as
+    :func:`disparity_bias_sensitivity`). Mostly a scale of the delta's rotation (a turn of
+    ``θ`` reads about ``θ (1 + ε)``): a fixed focal error turns a net turn into a heading
+    error that no per-delta covariance averages out; the filter holds ``ε`` as a consider
+    parameter (slam.filter, module docstring). ``linearised``: :func:`_reprojection` at
+    ``T``, when the caller has it."""
+    _, J, W, JpRt = linearised or _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
+    H = J.reshape(-1, 6).T @ (W @ J).reshape(-1, 6)
+    dr = (uv - K[:2, 2]) + JpRt[:, :, 2] * X[:, 2:3]
     g = np.einsum("nki,nkl,nl->i", J, W, dr)
     return np.linalg.solve(H, g)
 
@@ -653,7 +680,7 @@ class StereoVO:
             return VoResult(t, frame_id, False, reason, None, None, None, 0, np.zeros((0, 2)), new_kf, history,
                             0 if meas is None else meas.matches)
         return VoResult(t, frame_id, True, None, ref.frame_id, meas.T, meas.cov, len(meas.inlier_uv), meas.inlier_uv,
-                        new_kf, history, meas.matches, meas.disparity_sensitivity, meas.map_cov)
+                        new_kf, history, meas.matches, meas.disparity_sensitivity, meas.map_cov, meas.focal_sensitivity)
 
     # ------------------------------------------------------------------ keyframes
 
@@ -887,15 +914,16 @@ class StereoVO:
             inliers = (T, X[sel], cov_X[sel], uv1[sel], self.K, p.pixel_noise_px)
             lin = _reprojection(*inliers[:5], p.pixel_noise_px**2)  # one linearisation at T for both
             s = disparity_bias_sensitivity(*inliers, c.fb, linearised=lin)
+            s_f = focal_scale_sensitivity(*inliers, linearised=lin)
             map_cov = map_covariance(*inliers, linearised=lin)
         except np.linalg.LinAlgError:
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
         std = np.sqrt(np.diag(cov))
-        if (not np.all(np.isfinite(cov)) or not np.all(np.isfinite(s)) or not np.all(np.isfinite(map_cov))
+        if (not np.all(np.isfinite(cov)) or not np.all(np.isfinite(s)) or not np.all(np.isfinite(s_f)) or not np.all(np.isfinite(map_cov))
                 or np.any(np.linalg.eigvalsh(0.5 * (cov + cov.T)) <= 0)
                 or std[:3].max() > p.max_rotation_std_rad or std[3:].max() > p.max_translation_std_m):
             return _Measurement(False, VoFailure.DEGENERATE, matches=n)
-        return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n, s, map_cov, idx[sel])
+        return _Measurement(True, None, T, 0.5 * (cov + cov.T), uv1[sel], n, s, map_cov, idx[sel], s_f)
 
     def _measure_offset(self, kf: _Keyframe, m: _Measurement, grey: np.ndarray) -> None:
         """Fuse the rig's disparity offsets as ``kf``'s sparse disparities and ``m``'s inliers

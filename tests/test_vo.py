@@ -26,7 +26,7 @@ import pytest
 from vo_sequences import COPTER, ROVER, ROVER_SCAN, StereoSequence, render_sequence
 
 from sim.world.calibration_errors import RigError
-from slam.lie import pose_error, se3, so3_exp
+from slam.lie import pose_error, se3, so3_exp, so3_log
 from slam.stereo import StereoCalibration, StereoMatcher, point_error, row_offset_sensitivity, triangulate
 from slam.vo import (
     StereoVO,
@@ -35,6 +35,7 @@ from slam.vo import (
     delta_in_body_frame,
     disparity_bias_sensitivity,
     extrinsic_sensitivity,
+    focal_scale_sensitivity,
     map_covariance,
     refine_pose,
     row_offset_measurement,
@@ -226,6 +227,32 @@ def test_disparity_bias_sensitivity_predicts_the_pose_shift():
         shift = pose_error(T, T_hat)
         assert np.linalg.norm(shift[3:]) > 2e-3 * delta / 0.1  # millimetres: worth a covariance term
         np.testing.assert_allclose(shift, delta * s, atol=0.08 * np.abs(delta * s).max())
+
+
+def test_focal_scale_sensitivity_predicts_the_pose_shift():
+    """Both cameras' true focal length ``f (1 + ε)`` where the stack believes ``f``: the
+    keyframe's points triangulated and the current image's pixels projected with the true
+    focal, refined with the believed one. The pose moves by ``ε s`` (noise-free, ε of 0.2
+    and 0.5 %), mostly as a scale of the delta's rotation: a 10 deg turn reads about
+    ``10 (1 + ε)`` deg."""
+    rng = np.random.default_rng(4)
+    n = 120
+    T = se3(so3_exp([0.02, 0.17, -0.01]), [0.1, -0.02, 0.3])
+    X, _, _ = synthetic_scene(rng, n, 6.0, T)
+    cov_X = stereo_point_covariance(X, CAL, 0.5)
+    Xc = (X - T[:3, 3]) @ T[:3, :3]
+    s = focal_scale_sensitivity(T, X, cov_X, CAL.focal_px * Xc[:, :2] / Xc[:, 2:3] + [CAL.cx, CAL.cy], CAL.K, 0.5)
+    for eps in (0.002, 0.005):
+        f_true = CAL.focal_px * (1.0 + eps)
+        u0 = f_true * X[:, :2] / X[:, 2:3] + [CAL.cx, CAL.cy]
+        ur = f_true * (X[:, 0] - CAL.baseline_m) / X[:, 2] + CAL.cx
+        Xb = triangulate(u0[:, 0], u0[:, 1], ur, u0[:, 1], CAL)  # the believed focal: depths z / (1 + ε)
+        uv1 = f_true * Xc[:, :2] / Xc[:, 2:3] + [CAL.cx, CAL.cy]
+        T_hat, _, _, _ = refine_pose(T, Xb, stereo_point_covariance(Xb, CAL, 0.5), uv1, CAL.K, 0.5, 10)
+        shift = pose_error(T, T_hat)
+        np.testing.assert_allclose(shift, eps * s, atol=0.05 * np.abs(eps * s).max())
+        turn = np.linalg.norm(so3_log(T[:3, :3]))
+        assert np.linalg.norm(so3_log(T_hat[:3, :3])) / turn - 1.0 == pytest.approx(eps, rel=0.25)
 
 
 def rotated_right_u(X: np.ndarray, theta: np.ndarray) -> np.ndarray:
