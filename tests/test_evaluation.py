@@ -157,3 +157,42 @@ def test_vo_delta_scores_fit_deltas_drawn_from_their_covariance_and_flag_overcon
                                   inliers=50, keypoints=np.zeros((0, 2)), new_keyframe=False, keyframe_history=(0,)))
     assert scores.report()["scale_error"]["median"] == pytest.approx(0.03)
     assert VoDeltaScores().report()["status"] == "no deltas scored"
+
+
+def test_vo_heading_report_reads_the_keyframe_chain_turn_scale():
+    """A rover turning left and right about the world's vertical (net +105 deg) with a
+    camera looking ahead and down, its keyframe deltas' rotations 0.4 % too large (what a
+    0.4 % focal error does) plus noise: the heading report's rotation scale error is 0.4 %
+    within its stated std, the chained heading error -0.4 % of the net turn, and one link off
+    by 20 deg is counted apart; deltas that made no keyframe do not enter it."""
+    from sim.evaluation.vo_consistency import VoDeltaScores
+    from slam.lie import rot_z, rot_zyx, se3, so3_exp, so3_log
+    from slam.vo import VoResult
+
+    rng = np.random.default_rng(5)
+    cam = rot_zyx(-np.pi / 2, 0.0, -np.pi / 2 - 0.4)  # camera z ahead, tilted down
+    turns = np.radians(np.r_[np.full(30, 3.0), np.full(15, -3.0), np.full(30, 2.0), np.full(5, 0.0)])
+    scores, yaw, pose_kf, k = VoDeltaScores(), 0.0, None, 0
+    for i, d in enumerate(turns):
+        for step in (0.5, 1.0):  # a delta half-way (no keyframe), then the link
+            T = se3(rot_z(yaw + step * d) @ cam, [0.1 * i + 0.05 * step, 0.0, 0.5])
+            k += 1
+            scores.capture(k, T)
+            if pose_kf is None:
+                continue
+            true = np.linalg.inv(pose_kf[1]) @ T
+            rv = so3_log(true[:3, :3]) * 1.004 + rng.normal(0.0, np.radians(0.01), 3)
+            if i == 40 and step == 1.0:
+                rv = rv + cam.T @ [0.0, 0.0, np.radians(20.0)]
+            est = se3(so3_exp(rv), true[:3, 3])
+            scores.score(VoResult(t=0.1 * k, frame_id=k, ok=True, reason=None, keyframe_id=pose_kf[0], T_kf_cur=est,
+                                  cov=np.eye(6) * 1e-6, inliers=50, keypoints=np.zeros((0, 2)), new_keyframe=step == 1.0,
+                                  keyframe_history=(pose_kf[0],)))
+        pose_kf = (k, T)
+        yaw += d
+    h = scores.report()["heading"]
+    assert h["links"] == len(turns) - 1 and h["gross_links"] == 1
+    assert h["net_turn_deg"] == pytest.approx(np.degrees(turns[1:].sum()) - np.degrees(turns[40]), abs=0.05)
+    assert h["rotation_scale_error"] == pytest.approx(0.004, abs=3 * h["rotation_scale_error_std"])
+    assert h["rotation_scale_error_std"] < 0.001
+    assert h["error_deg"] == pytest.approx(-0.004 * h["net_turn_deg"], abs=0.1)

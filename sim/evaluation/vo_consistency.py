@@ -8,7 +8,10 @@ filter holds the calibration's share as consider parameters (slam/filter.py), wh
 covariance leaves out on purpose. A delta covariance that fits gives a mean near 6 (3
 for the rotation part, 3 for the translation part). The signed scale error of the deltas'
 translations (their length against the true one) shows a bias common to all of them,
-which no covariance per delta describes."""
+which no covariance per delta describes; so does the heading of the keyframe chain (each
+delta that made a new keyframe, chained): its error about the world's vertical and the
+scale of its turns against the true ones, what a focal length error of the rig does
+(slam.vo.focal_scale_sensitivity)."""
 
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ class VoDeltaScores:
         self._errors: list[np.ndarray] = []
         self._covs: list[np.ndarray] = []
         self._lengths: list[tuple[float, float]] = []  # (estimated, true) translation length
+        self._links: list[tuple[float, float]] = []  # keyframe-to-keyframe deltas: (heading error, true turn) about the world's z, rad
         self.unscored = 0  # ok deltas whose keyframe or frame had no true pose
 
     def capture(self, frame_id: int, T_world_cam: np.ndarray) -> None:
@@ -48,15 +52,20 @@ class VoDeltaScores:
                 self._errors.append(np.concatenate([so3_log(R.T @ true[:3, :3]), R.T @ (true[:3, 3] - est[:3, 3])]))
                 self._covs.append(np.asarray(result.cov, dtype=float))
                 self._lengths.append((float(np.linalg.norm(est[:3, 3])), float(np.linalg.norm(true[:3, 3]))))
+                if result.new_keyframe:
+                    up_error = cur[:3, :3] @ self._errors[-1][:3]  # the error's rotation in the world frame
+                    up_turn = kf[:3, :3] @ so3_log(true[:3, :3])
+                    self._links.append((float(up_error[2]), float(up_turn[2])))
         if result.keyframe_history:
             oldest = min(min(result.keyframe_history), result.frame_id)
             for frame in [f for f in self._true if f < oldest]:
                 del self._true[frame]
 
-    def report(self, min_length_m: float = 0.05) -> dict[str, Any]:
+    def report(self, min_length_m: float = 0.05, gross_rad: float = np.radians(1.0)) -> dict[str, Any]:
         """NEES of the whole delta (6 dof), its rotation and its translation (3 each), the
-        median sizes of the errors (deg, mm) and, over the deltas that moved at least
-        ``min_length_m``, the median and mean of ``|t_est| / |t_true| - 1``."""
+        median sizes of the errors (deg, mm), over the deltas that moved at least
+        ``min_length_m`` the median and mean of ``|t_est| / |t_true| - 1``, and the keyframe
+        chain's heading (:meth:`_heading_report`)."""
         if not self._errors:
             return {"status": "no deltas scored", "unscored": self.unscored}
         err, cov = np.array(self._errors), np.array(self._covs)
@@ -71,4 +80,26 @@ class VoDeltaScores:
         scale = moved[:, 0] / moved[:, 1] - 1.0 if len(moved) else np.zeros(0)
         out["scale_error"] = {"deltas": len(scale), "median": float(np.median(scale)) if len(scale) else None,
                               "mean": float(np.mean(scale)) if len(scale) else None}
+        out["heading"] = self._heading_report(gross_rad)
+        return out
+
+    def _heading_report(self, gross_rad: float) -> dict[str, Any]:
+        """The keyframe chain's heading: links (deltas that made a new keyframe), its chained
+        error about the world's vertical (true minus estimated, deg) and the true net and
+        total turn, over the links off by less than ``gross_rad`` (the others, which the
+        filter's gate meets, counted apart), and the rotation scale error ``ε`` of a
+        least-squares fit ``error = a - ε turn`` with its standard error: the turns read
+        ``1 + ε`` times the true ones."""
+        links = np.array(self._links).reshape(-1, 2)
+        gross = np.abs(links[:, 0]) >= gross_rad
+        err, turn = links[~gross, 0], links[~gross, 1]
+        out: dict[str, Any] = {"links": len(links), "gross_links": int(gross.sum()), "error_deg": float(np.degrees(err.sum())),
+                               "net_turn_deg": float(np.degrees(turn.sum())), "turned_deg": float(np.degrees(np.abs(turn).sum())),
+                               "rotation_scale_error": None, "rotation_scale_error_std": None}
+        if len(err) > 2 and np.ptp(turn) > 0.0:
+            A = np.stack([np.ones_like(turn), turn], axis=1)
+            coef, *_ = np.linalg.lstsq(A, err, rcond=None)
+            resid = err - A @ coef
+            cov = np.linalg.inv(A.T @ A) * (resid @ resid) / (len(err) - 2)
+            out["rotation_scale_error"], out["rotation_scale_error_std"] = float(-coef[1]), float(np.sqrt(cov[1, 1]))
         return out
