@@ -822,7 +822,7 @@ class SlamConfig(StrictModel):
     vo_focal_scale_std: NonNegFloat = slam_field(
         SlamParam(FilterParams, "focal_scale_std"),
         description="relative std of the VO rig's focal length (both cameras alike), held by the filter as a consider parameter:"
-        " it scales the VO's rotations (0: none)",
+        " it scales the VO's rotations (0: none; docs/realism.md, \"The VO's turns\")",
     )
     vo_keyframe_map_error: bool = slam_field(
         SlamParam(FilterParams, "keyframe_map_error"),

@@ -170,10 +170,12 @@ class FilterParams:
     ``disparity_bias_std`` (px): a disparity offset common to all points of the VO rig (a
     residual yaw of the rectified pair; 0.25 px: 0.04 deg at the LRU's 338 px focal
     length), one more consider parameter, seen through each delta's sensitivity.
-    ``focal_scale_std`` (relative): the VO rig's focal length error, both cameras alike
-    (a calibration's residual; 0.2 %), one more consider parameter seen through each
+    ``focal_scale_std`` (relative; 0: not modelled, the default): the VO rig's focal
+    length error, both cameras alike, one more consider parameter seen through each
     delta's sensitivity (:func:`slam.vo.focal_scale_sensitivity`): it scales the deltas'
-    rotations, so that a net turn leaves a heading error the gyro has to tell apart.
+    rotations, so that a net turn leaves a heading error the gyro has to tell apart. At
+    the realistic profile's 0.2 % it made Etna's filters more consistent but not more
+    accurate, and its graphs closed fewer loops (docs/realism.md, "The VO's turns").
     ``keyframe_map_error``: the VO deltas' share of error from their keyframe's 3D points
     goes onto the keyframe's clone once (:meth:`LocalReferenceFilter.update_relative_pose`,
     ``keyframe_map_cov``) instead of into every delta; False: each delta with its whole
@@ -201,7 +203,7 @@ class FilterParams:
     extrinsic_rotation_std: float = math.radians(0.2)
     extrinsic_translation_std: float = 0.005
     disparity_bias_std: float = 0.25
-    focal_scale_std: float = 0.002
+    focal_scale_std: float = 0.0
     keyframe_map_error: bool = True
 
     def __post_init__(self):

@@ -38,7 +38,6 @@ PARAMS = FilterParams(
     extrinsic_rotation_std=0.0,
     extrinsic_translation_std=0.0,
     disparity_bias_std=0.0,
-    focal_scale_std=0.0,
 )
 MISALIGNMENT_STD = math.radians(0.3)  # the z axis's lean towards x and y in the misaligned-IMU tests
 

@@ -147,7 +147,6 @@ def filter_params(spec: ImuSpec) -> FilterParams:
         extrinsic_rotation_std=0.0,
         extrinsic_translation_std=0.0,
         disparity_bias_std=0.0,
-        focal_scale_std=0.0,
     )
 
 

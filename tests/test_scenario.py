@@ -122,7 +122,7 @@ def test_slam_keys_take_slam_defaults_and_units():
         "extrinsic_rotation_std": pytest.approx(math.radians(0.2)),
         "extrinsic_translation_std": 0.005,
         "disparity_bias_std": 0.25,
-        "focal_scale_std": 0.002,
+        "focal_scale_std": 0.0,
         "keyframe_map_error": True,
     }
     assert slam_kwargs(RestParams, SlamConfig(zero_velocity=False)) == {"zero_velocity": False}
