@@ -33,7 +33,7 @@ class VoDeltaScores:
         self._errors: list[np.ndarray] = []
         self._covs: list[np.ndarray] = []
         self._lengths: list[tuple[float, float]] = []  # (estimated, true) translation length
-        self._links: list[tuple[float, float]] = []  # keyframe-to-keyframe deltas: (heading error, true turn) about the world's z, rad
+        self._links: list[tuple[float, float]] = []  # keyframe-to-keyframe deltas: (estimated minus true, true turn) about the world's z, rad
         self.unscored = 0  # ok deltas whose keyframe or frame had no true pose
 
     def capture(self, frame_id: int, T_world_cam: np.ndarray) -> None:
@@ -53,9 +53,9 @@ class VoDeltaScores:
                 self._covs.append(np.asarray(result.cov, dtype=float))
                 self._lengths.append((float(np.linalg.norm(est[:3, 3])), float(np.linalg.norm(true[:3, 3]))))
                 if result.new_keyframe:
-                    up_error = cur[:3, :3] @ self._errors[-1][:3]  # the error's rotation in the world frame
+                    up_error = cur[:3, :3] @ self._errors[-1][:3]  # true minus estimated, as a rotation in the world frame
                     up_turn = kf[:3, :3] @ so3_log(true[:3, :3])
-                    self._links.append((float(up_error[2]), float(up_turn[2])))
+                    self._links.append((-float(up_error[2]), float(up_turn[2])))
         if result.keyframe_history:
             oldest = min(min(result.keyframe_history), result.frame_id)
             for frame in [f for f in self._true if f < oldest]:
@@ -85,11 +85,11 @@ class VoDeltaScores:
 
     def _heading_report(self, gross_rad: float) -> dict[str, Any]:
         """The keyframe chain's heading: links (deltas that made a new keyframe), its chained
-        error about the world's vertical (true minus estimated, deg) and the true net and
-        total turn, over the links off by less than ``gross_rad`` (the others, which the
-        filter's gate meets, counted apart), and the rotation scale error ``ε`` of a
-        least-squares fit ``error = a - ε turn`` with its standard error: the turns read
-        ``1 + ε`` times the true ones."""
+        error about the world's vertical (estimated minus true, deg, as the filter's
+        ``yaw_error_deg``) and the true net and total turn, over the links off by less than
+        ``gross_rad`` (the others, which the filter's gate meets, counted apart), and the
+        rotation scale error ``ε`` of a least-squares fit ``error = a + ε turn`` with its
+        standard error: the turns read ``1 + ε`` times the true ones."""
         links = np.array(self._links).reshape(-1, 2)
         gross = np.abs(links[:, 0]) >= gross_rad
         err, turn = links[~gross, 0], links[~gross, 1]
@@ -101,5 +101,5 @@ class VoDeltaScores:
             coef, *_ = np.linalg.lstsq(A, err, rcond=None)
             resid = err - A @ coef
             cov = np.linalg.inv(A.T @ A) * (resid @ resid) / (len(err) - 2)
-            out["rotation_scale_error"], out["rotation_scale_error_std"] = float(-coef[1]), float(np.sqrt(cov[1, 1]))
+            out["rotation_scale_error"], out["rotation_scale_error_std"] = float(coef[1]), float(np.sqrt(cov[1, 1]))
         return out
