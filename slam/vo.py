@@ -379,10 +379,14 @@ def disparity_bias_sensitivity(
     so the filter holds it as a consider parameter in Schmidt's sense (the estimate does
     not solve for it). ``linearised``: :func:`_reprojection` at ``T``, when the caller has it."""
     _, J, W, JpRt = linearised or _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
+    return _pose_shift(J, W, np.einsum("nij,nj->ni", JpRt, X * (X[:, 2] / fb)[:, None]))
+
+
+def _pose_shift(J: np.ndarray, W: np.ndarray, dr: np.ndarray) -> np.ndarray:
+    """The Gauss-Newton step ``H^-1 Σ J_i^T W_i dr_i`` by which the refined pose moves when
+    every residual moves by ``dr_i`` (n, 2): the pose's sensitivity to a calibration error."""
     H = J.reshape(-1, 6).T @ (W @ J).reshape(-1, 6)
-    dr = np.einsum("nij,nj->ni", JpRt, X * (X[:, 2] / fb)[:, None])
-    g = np.einsum("nki,nkl,nl->i", J, W, dr)
-    return np.linalg.solve(H, g)
+    return np.linalg.solve(H, np.einsum("nki,nkl,nl->i", J, W, dr))
 
 
 def focal_scale_sensitivity(
@@ -402,10 +406,7 @@ def focal_scale_sensitivity(
     parameter (slam.filter, module docstring). ``linearised``: :func:`_reprojection` at
     ``T``, when the caller has it."""
     _, J, W, JpRt = linearised or _reprojection(T, X, cov_X, uv, K, pixel_noise_px**2)
-    H = J.reshape(-1, 6).T @ (W @ J).reshape(-1, 6)
-    dr = (uv - K[:2, 2]) + JpRt[:, :, 2] * X[:, 2:3]
-    g = np.einsum("nki,nkl,nl->i", J, W, dr)
-    return np.linalg.solve(H, g)
+    return _pose_shift(J, W, (uv - K[:2, 2]) + JpRt[:, :, 2] * X[:, 2:3])
 
 
 def two_view_disparity_offset(
