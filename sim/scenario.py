@@ -740,6 +740,10 @@ class MatchingConfig(StrictModel):
     max_icp_rmse_m: PositiveFloat = slam_field(
         SlamParam(MatcherParams, "max_icp_rmse_m"), description="a refined match with a larger point-to-point RMSE is rejected"
     )
+    icp_outlier_m: PositiveFloat = slam_field(
+        SlamParam(MatcherParams, "icp_outlier_m"),
+        description="the ICP's truncated least squares: a point-to-plane residual beyond this, or a point without a partner, costs this much",
+    )
 
 
 class HealthConfig(StrictModel):

@@ -126,6 +126,7 @@ class MatcherParams:
     sigma_scale: float = 1.0  # multiplies the graph's relative sigmas (eq. 6.1-6.4 and the checks)
     # refinement and acceptance
     icp_max_distance_m: float = 0.25
+    icp_outlier_m: float = 0.05  # truncation of the ICP's point-to-plane residuals (slam/registration.py icp)
     icp_iterations: int = 40
     icp_point_resolution_m: float = 0.1  # source cloud subsampling for the ICP
     icp_points: MatchPoints = MatchPoints.ALL
@@ -386,7 +387,18 @@ def _icp_points(kp: Keypoints, params: MatcherParams) -> np.ndarray | slice:
 def _refine(source: np.ndarray, a: Keypoints, T0: np.ndarray, dof: int, params: MatcherParams) -> IcpResult | None:
     m = _icp_points(a, params)
     tree = a.tree if params.icp_points is MatchPoints.ALL else None
-    return icp(source, a.cloud[m], a.normals[m], T0, dof, params.icp_max_distance_m, params.icp_iterations, min_pairs=params.min_icp_pairs, tree=tree)
+    return icp(
+        source,
+        a.cloud[m],
+        a.normals[m],
+        T0,
+        dof,
+        params.icp_max_distance_m,
+        params.icp_iterations,
+        min_pairs=params.min_icp_pairs,
+        tree=tree,
+        outlier_m=params.icp_outlier_m,
+    )
 
 
 def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior | None = None) -> MatchResult:

@@ -180,6 +180,21 @@ class IcpResult:
     converged: bool
 
 
+def _increment(delta: np.ndarray, dof: int) -> np.ndarray:
+    """The left increment ``Exp(delta)`` of the ICP: ``delta = (dx, dy, dz, dyaw)`` for
+    ``dof=4``, ``(dx, dy, dz, wx, wy, wz)`` for ``dof=6``."""
+    if dof == 4:
+        return se3(rot_z(delta[3]), delta[:3])
+    w = delta[3:]
+    angle = np.linalg.norm(w)
+    K = skew(w)  # Rodrigues in matrix form; lie.so3_exp agrees to the last bit only
+    dR = np.eye(3) if angle < 1e-12 else np.eye(3) + math.sin(angle) / angle * K + (1 - math.cos(angle)) / angle**2 * K @ K
+    return se3(dR, delta[:3])
+
+
+_HALVINGS = 6  # of a Gauss-Newton step that does not lower the ICP's cost, before the ICP stops
+
+
 def icp(
     source: np.ndarray,
     target: np.ndarray,
@@ -188,58 +203,73 @@ def icp(
     dof: int = 4,
     max_distance_m: float = 0.3,
     iterations: int = 30,
-    tolerance: float = 1e-5,
+    tolerance: float = 1e-4,
     min_pairs: int = 50,
     tree: cKDTree | None = None,
+    outlier_m: float = 0.05,
 ) -> IcpResult | None:
     """Point-to-plane ICP of ``source`` (submap b) onto ``target`` (submap a, with unit
-    normals) from ``T0``, by Gauss-Newton with a Huber weight (thesis 6.1.2: refinement
-    on the full clouds). ``dof=4`` optimises x, y, z and yaw only, the increment applied
-    as ``T <- Exp(delta) T`` with ``delta = (dx, dy, dz, dyaw)``, so roll and pitch of
-    ``T0`` are never changed (zero for a 4D hypothesis); ``dof=6`` adds roll and pitch.
-    Pairs farther apart than ``max_distance_m`` are ignored. None with fewer than
-    ``min_pairs`` pairs."""
+    normals) from ``T0`` (thesis 6.1.2: refinement on the full clouds). ``dof=4``
+    optimises x, y, z and yaw only, the increment applied as ``T <- Exp(delta) T`` with
+    ``delta = (dx, dy, dz, dyaw)``, so roll and pitch of ``T0`` are never changed (zero
+    for a 4D hypothesis); ``dof=6`` adds roll and pitch.
+
+    The cost is a truncated least squares over *every* source point: ``min(|r|, c)^2``
+    with ``r`` its point-to-plane residual to the nearest target point within
+    ``max_distance_m`` and ``c = outlier_m``; a point without such a neighbour costs
+    ``c^2`` too. A point that leaves the overlap costs as much as an outlier, so the ICP
+    cannot lower its cost by sliding the clouds apart, and a point with a large residual
+    pulls no more than one outside. Gauss-Newton steps on the inliers (weights 1 inside
+    ``c``, 0 outside) are taken only where they lower this cost, halved up to
+    ``_HALVINGS`` times otherwise (the thesis adapted PCL's Levenberg-Marquardt ICP, which
+    likewise rejects steps that raise its cost); the ICP stops (converged) when none does
+    or the cost falls by less than ``tolerance`` relatively. A plain ICP on these ground-dominated
+    clouds, whose cost is nearly flat in x, y and yaw, wanders: started at the true
+    transform it ended more than 0.3 m or 3 deg off on most overlapping revisits
+    (docs/matching.md, "The ICP's cost"). None with fewer than ``min_pairs`` pairs."""
     tree = cKDTree(target) if tree is None else tree
+    cap = outlier_m**2
+
+    def evaluate(T: np.ndarray):
+        x = source @ T[:3, :3].T + T[:3, 3]
+        dist, idx = tree.query(x, distance_upper_bound=max_distance_m)
+        ok = np.isfinite(dist)
+        x, p, n = x[ok], target[idx[ok]], target_normals[idx[ok]]
+        r = np.einsum("ij,ij->i", x - p, n)
+        cost = float(np.sum(np.minimum(r * r, cap)) + cap * np.count_nonzero(~ok))
+        return cost, x, p, n, r
+
     T = np.array(T0, dtype=float)
+    cost, x, p, n, r = evaluate(T)
     converged = False
     done = 0
     for it in range(1, iterations + 1):
         done = it
-        x = source @ T[:3, :3].T + T[:3, 3]
-        dist, idx = tree.query(x, distance_upper_bound=max_distance_m)
-        ok = np.isfinite(dist)
-        if ok.sum() < min_pairs:
+        if len(x) < min_pairs:
             return None
-        x, p, n = x[ok], target[idx[ok]], target_normals[idx[ok]]
-        r = np.einsum("ij,ij->i", x - p, n)
+        inl = np.abs(r) < outlier_m
         # d(R x + t)/d[t, w] for a left increment: t -> I, w -> -[x]_x
-        J = np.column_stack([n, np.cross(x, n)])  # [n, x × n]: the rotation columns about x, y, z
+        J = np.column_stack([n[inl], np.cross(x[inl], n[inl])])  # [n, x × n]: the rotation columns about x, y, z
         J = J[:, [0, 1, 2, 5]] if dof == 4 else J
-        huber = 0.05
-        w = np.where(np.abs(r) <= huber, 1.0, huber / np.maximum(np.abs(r), 1e-12))
-        H = J.T @ (J * w[:, None])
-        g = J.T @ (w * r)
         try:
-            delta = -np.linalg.solve(H + 1e-9 * np.eye(len(g)), g)
+            delta = -np.linalg.solve(J.T @ J + 1e-9 * np.eye(J.shape[1]), J.T @ r[inl])
         except np.linalg.LinAlgError:
             return None
-        if dof == 4:
-            dT = se3(rot_z(delta[3]), delta[:3])
+        for _ in range(_HALVINGS):
+            T_new = _increment(delta, dof) @ T
+            new = evaluate(T_new)
+            if new[0] < cost:
+                break
+            delta = delta / 2
         else:
-            w_ = delta[3:]
-            angle = np.linalg.norm(w_)
-            K = skew(w_)  # Rodrigues in matrix form; lie.so3_exp agrees to the last bit only
-            dR = np.eye(3) if angle < 1e-12 else np.eye(3) + math.sin(angle) / angle * K + (1 - math.cos(angle)) / angle**2 * K @ K
-            dT = se3(dR, delta[:3])
-        T = dT @ T
-        if np.linalg.norm(delta) < tolerance:
             converged = True
             break
-    x = source @ T[:3, :3].T + T[:3, 3]
-    dist, idx = tree.query(x, distance_upper_bound=max_distance_m)
-    ok = np.isfinite(dist)
-    if ok.sum() < min_pairs:
+        decrease = (cost - new[0]) / max(cost, 1e-300)
+        T, (cost, x, p, n, r) = T_new, new
+        if decrease < tolerance:
+            converged = True
+            break
+    if len(x) < min_pairs:
         return None
-    paired = x[ok]
-    radius = float(np.sqrt(np.mean(np.sum((paired[:, :2] - paired[:, :2].mean(axis=0)) ** 2, axis=1))))
-    return IcpResult(T, float(np.sqrt(np.mean(dist[ok] ** 2))), int(ok.sum()), radius, done, converged)
+    radius = float(np.sqrt(np.mean(np.sum((x[:, :2] - x[:, :2].mean(axis=0)) ** 2, axis=1))))
+    return IcpResult(T, float(np.sqrt(np.mean(np.sum((x - p) ** 2, axis=1)))), len(x), radius, done, converged)
