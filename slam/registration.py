@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slam.lie import rot_z, se3, skew
+from slam.lie import rot_z, se3, so3_exp
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -183,13 +183,7 @@ class IcpResult:
 def _increment(delta: np.ndarray, dof: int) -> np.ndarray:
     """The left increment ``Exp(delta)`` of the ICP: ``delta = (dx, dy, dz, dyaw)`` for
     ``dof=4``, ``(dx, dy, dz, wx, wy, wz)`` for ``dof=6``."""
-    if dof == 4:
-        return se3(rot_z(delta[3]), delta[:3])
-    w = delta[3:]
-    angle = np.linalg.norm(w)
-    K = skew(w)  # Rodrigues in matrix form; lie.so3_exp agrees to the last bit only
-    dR = np.eye(3) if angle < 1e-12 else np.eye(3) + math.sin(angle) / angle * K + (1 - math.cos(angle)) / angle**2 * K @ K
-    return se3(dR, delta[:3])
+    return se3(rot_z(delta[3]) if dof == 4 else so3_exp(delta[3:]), delta[:3])
 
 
 _HALVINGS = 6  # of a Gauss-Newton step that does not lower the ICP's cost, before the ICP stops
