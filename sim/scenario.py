@@ -711,6 +711,11 @@ class MatchingConfig(StrictModel):
         SlamParam(MatcherParams, "keypoints"),
         description="keypoints from obstacle points (thesis 6.1.1), salient local geometry (surface variation; 9.3), or both",
     )
+    voting: Literal["hough3d", "yaw_sweep"] = slam_field(
+        SlamParam(MatcherParams, "voting"),
+        description="clusters of correspondences: Hough3D with local reference frames (thesis 6.1.2), or every yaw of a 2 deg "
+        "grid voting for translations, no reference frames (ours; the submaps are gravity-aligned)",
+    )
     icp_points: Literal["all", "classified"] = slam_field(
         SlamParam(MatcherParams, "icp_points"),
         description="the ICP refinement aligns the whole clouds, or only their points within the obstacle classification's "

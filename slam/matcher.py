@@ -20,14 +20,16 @@ Choices where the thesis used PCL:
   PCL's CSHOT, which no maintained Python library offers. FPFH describes the same
   spherical neighbourhood (radius ``descriptor_radius_m``) by histograms of normal
   angles. Normals are oriented to +z, which both gravity-aligned submaps share.
-- Hough voting follows Tombari and Di Stefano (2010), as PCL's ``Hough3DGrouping``:
-  every keypoint gets the local reference frame of SHOT (Tombari et al. 2010: the
-  eigenvectors of the distance-weighted neighbourhood scatter, signs towards the
-  majority of neighbours); each correspondence carries the vector from the model
-  keypoint to the model's reference point (the centroid of its keypoints) through the
-  two frames into the scene and votes for a position there. Peaks of the 3D vote
-  grid (``hough_bin_m``, at least ``hough_min_votes``) are the clusters; voting runs
-  in both directions (6.1.2, the asymmetry of translation and rotation).
+- Voting (:class:`Voting`, ``slam/voting.py``): the thesis's Hough3D (Tombari and Di
+  Stefano 2010, as PCL's ``Hough3DGrouping``) with SHOT's local reference frames
+  (Tombari et al. 2010: the eigenvectors of the distance-weighted neighbourhood scatter,
+  signs towards the majority of neighbours), run in both directions (6.1.2, the asymmetry
+  of translation and rotation); or, ours, a sweep over yaw that votes in the 4D space of
+  gravity-aligned transformations and needs no reference frames.
+- The plausibility checks bound the yaw as well as the translation (ours; the thesis
+  bounds the translation): both against the graph's relative sigmas and the match's own
+  combined, the match's yaw sigma being its translation sigma over the lever of its
+  matched points.
 
 Only numpy, scipy and open3d (``slam`` stays free of simulator code).
 """
@@ -43,9 +45,10 @@ from enum import StrEnum
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slam.lie import roll_pitch
+from slam.lie import roll_pitch, wrap_angle, yaw_of
 from slam.registration import IcpResult, icp, off_line_count, ransac
 from slam.submap import Submap, voxel_filter
+from slam.voting import hough3d, yaw_sweep
 
 SubmapKey = tuple[str, int]  # (robot, submap index)
 PairKey = tuple[SubmapKey, SubmapKey]  # sorted
@@ -69,6 +72,13 @@ class KeypointSelection(StrEnum):
     OBSTACLES = "obstacles"  # the obstacle classification's points (thesis)
     GEOMETRY = "geometry"  # points whose surface variation reaches min_surface_variation
     BOTH = "both"
+
+
+class Voting(StrEnum):
+    """How correspondences are clustered into hypotheses (6.1.2; ``slam/voting.py``)."""
+
+    HOUGH3D = "hough3d"  # the thesis: Hough3D with SHOT local reference frames, both directions
+    YAW_SWEEP = "yaw_sweep"  # ours: every yaw of a grid, translation votes, no reference frames
 
 
 class MatchPoints(StrEnum):
@@ -109,10 +119,13 @@ class MatcherParams:
     normal_radius_m: float = 0.2  # thesis r = 0.2 m for normals, frames and descriptors
     nearest: int = 3  # most similar features per keypoint, both directions
     max_descriptor_distance: float = 0.25  # L2 between unit descriptors over its range [0, sqrt 2] (thesis 0.5 for CSHOT)
-    # Hough voting and RANSAC
+    # voting and RANSAC
+    voting: Voting = Voting.HOUGH3D
     hough_bin_m: float = 0.3
     hough_min_votes: int = 5
     max_clusters: int = 8  # per voting direction, largest first
+    # the yaw sweep's grid: half a step over a 5 m lever is 9 cm, a third of a bin
+    hough_yaw_step_rad: float = math.radians(2.0)
     ransac_iterations: int = 100
     ransac_inlier_m: float = 0.2
     min_inliers: int = 6  # distinct keypoints on each side supporting a hypothesis
@@ -145,6 +158,10 @@ class MatcherParams:
         except ValueError:
             raise MatcherException(f"keypoints must be one of {[k.value for k in KeypointSelection]}, got {self.keypoints!r}") from None
         try:
+            object.__setattr__(self, "voting", Voting(self.voting))
+        except ValueError:
+            raise MatcherException(f"voting must be one of {[v.value for v in Voting]}, got {self.voting!r}") from None
+        try:
             object.__setattr__(self, "icp_points", MatchPoints(self.icp_points))
         except ValueError:
             raise MatcherException(f"icp_points must be one of {[k.value for k in MatchPoints]}, got {self.icp_points!r}") from None
@@ -153,6 +170,8 @@ class MatcherParams:
         ]
         if bad:
             raise MatcherException(f"matcher parameters must be finite and >= 0: {', '.join(bad)}")
+        if self.hough_bin_m <= 0 or not 0 < self.hough_yaw_step_rad <= math.pi:
+            raise MatcherException(f"hough_bin_m must be > 0 and hough_yaw_step_rad in (0, pi], got {self.hough_bin_m}, {self.hough_yaw_step_rad}")
 
     @property
     def ransac_dof(self) -> int:
@@ -271,8 +290,8 @@ def _lrf(cloud: np.ndarray, tree: cKDTree, centers: np.ndarray, radius: float) -
 
 
 def compute_features(kp: Keypoints, params: MatcherParams) -> None:
-    """Normals of the cloud, FPFH descriptors and local reference frames of the keypoints
-    (6.1.2 feature generation; computed once per submap, when first needed)."""
+    """Normals of the cloud, FPFH descriptors and (Hough3D voting) local reference frames
+    of the keypoints (6.1.2 feature generation; computed once per submap, when first needed)."""
     if kp.descriptors is not None:
         return
     import open3d as o3d  # here, not at the top: it takes about a second, and the scenario schema imports MatcherParams
@@ -288,7 +307,8 @@ def compute_features(kp: Keypoints, params: MatcherParams) -> None:
     at, back = np.unique(nearest, return_inverse=True)
     desc = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(pcd, search, at.tolist()).data).T[back]
     kp.descriptors = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
-    kp.frames = _lrf(kp.cloud, kp.tree, kp.points, params.descriptor_radius_m)
+    if params.voting is Voting.HOUGH3D:
+        kp.frames = _lrf(kp.cloud, kp.tree, kp.points, params.descriptor_radius_m)
 
 
 def correspondences(a: Keypoints, b: Keypoints, params: MatcherParams) -> np.ndarray:
@@ -309,43 +329,18 @@ def correspondences(a: Keypoints, b: Keypoints, params: MatcherParams) -> np.nda
     return np.unique(np.vstack(pairs), axis=0)
 
 
-def hough_clusters(scene: Keypoints, model: Keypoints, corr: np.ndarray, params: MatcherParams) -> list[np.ndarray]:
-    """Hough3D voting (Tombari and Di Stefano 2010): clusters of correspondences
-    (indices into ``corr``, whose columns are scene and model keypoints)."""
-    if len(corr) < params.hough_min_votes:
-        return []
-    ref = model.points.mean(axis=0)
-    local = np.einsum("nij,nj->ni", model.frames[corr[:, 1]], ref - model.points[corr[:, 1]])
-    votes = scene.points[corr[:, 0]] + np.einsum("nji,nj->ni", scene.frames[corr[:, 0]], local)
-    cells = np.floor(votes / params.hough_bin_m).astype(np.int64)
-    uniq, counts = np.unique(cells, axis=0, return_counts=True)
-    lookup = {tuple(c): n for c, n in zip(uniq, counts)}
-    offsets = [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)]
-    support = np.array([sum(lookup.get((c[0] + i, c[1] + j, c[2] + k), 0) for i, j, k in offsets) for c in uniq])
-    clusters = []
-    taken = np.zeros(len(corr), bool)
-    for u in np.argsort(-support, kind="stable"):
-        if support[u] < params.hough_min_votes:
-            break
-        near = np.all(np.abs(cells - uniq[u]) <= 1, axis=1) & ~taken
-        if near.sum() >= params.hough_min_votes:
-            clusters.append(np.flatnonzero(near))
-            taken |= near
-            if len(clusters) == params.max_clusters:
-                break
-    return clusters
-
-
 # ----------------------------------------------------------------------------- pairwise matching
 
 
 @dataclass(frozen=True)
 class Prior:
     """The graph's current estimate of ``T_a_b`` and its relative standard deviations
-    ``sigma_xyz`` (m, in ``a``'s frame) for the 2-sigma plausibility checks (6.1.2)."""
+    ``sigma_xyz`` (m, in ``a``'s frame) and ``sigma_yaw`` (rad; None: yaw unchecked) for
+    the 2-sigma plausibility checks (6.1.2)."""
 
     T_a_b: np.ndarray
     sigma_xyz: np.ndarray
+    sigma_yaw: float | None = None
 
 
 @dataclass
@@ -369,13 +364,39 @@ class MatchResult:
         return self.T_a_b is not None
 
 
-def _within(T: np.ndarray, prior: Prior | None, bound: float, sigma_xyz: np.ndarray | float) -> bool:
+def _within(T: np.ndarray, prior: Prior | None, bound: float, sigma_xyz: np.ndarray | float, sigma_yaw: float) -> bool:
     """The plausibility check of 6.1.2: ``T``'s translation within ``bound`` sigmas of the graph's. Both are
     estimates, so the sigma of their difference is that of the graph and that of ``T`` (``sigma_xyz``) combined;
-    the graph's alone rejects correct closures whenever it is more certain than the match."""
+    the graph's alone rejects correct closures whenever it is more certain than the match. Ours: the yaw too
+    (``sigma_yaw``, T's), where the prior has a yaw sigma; a translation check alone let hypotheses 9-34 deg off
+    through on Etna (docs/matching.md, "Voting without reference frames")."""
     if prior is None:
         return True
+    yaw_off = abs(wrap_angle(yaw_of(T[:3, :3]) - yaw_of(prior.T_a_b[:3, :3])))
+    if prior.sigma_yaw is not None and yaw_off > bound * math.hypot(prior.sigma_yaw, sigma_yaw):
+        return False
     return bool(np.all(np.abs(T[:3, 3] - prior.T_a_b[:3, 3]) <= bound * np.hypot(prior.sigma_xyz, sigma_xyz)))
+
+
+_MIN_LEVER_M = 0.5  # the shortest lever a translation sigma is turned into a yaw sigma over
+
+
+def _lever(points: np.ndarray) -> float:
+    """RMS horizontal distance of ``points`` from their centroid, at least ``_MIN_LEVER_M``: the lever over
+    which a translation sigma becomes a yaw sigma (as :func:`match_covariance` does with the ICP's overlap)."""
+    return max(float(np.sqrt(np.mean(np.sum((points[:, :2] - points[:, :2].mean(axis=0)) ** 2, axis=1)))), _MIN_LEVER_M)
+
+
+def _clusters(a: Keypoints, b: Keypoints, corr: np.ndarray, params: MatcherParams, prior: Prior | None) -> list[np.ndarray]:
+    """The voting of 6.1.2 (``params.voting``): clusters of indices into ``corr``. The yaw sweep covers only the
+    yaws the plausibility checks can accept (``prior``'s yaw sigma and the hypothesis's at the shortest lever)."""
+    if params.voting is Voting.YAW_SWEEP:
+        window = None
+        if prior is not None and prior.sigma_yaw is not None:  # the yaws _within can accept, at the shortest lever
+            window = (yaw_of(prior.T_a_b[:3, :3]), params.sigma_bound * math.hypot(prior.sigma_yaw, params.hypothesis_sigma_m / _MIN_LEVER_M))
+        return yaw_sweep(a.points, b.points, corr, params.hough_bin_m, params.hough_yaw_step_rad, params.hough_min_votes, params.max_clusters, window)
+    votes = (params.hough_bin_m, params.hough_min_votes, params.max_clusters)
+    return hough3d(a.points, a.frames, b.points, b.frames, corr, *votes) + hough3d(b.points, b.frames, a.points, a.frames, corr[:, ::-1], *votes)
 
 
 def _icp_points(kp: Keypoints, params: MatcherParams) -> np.ndarray | slice:
@@ -412,7 +433,7 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
     corr = correspondences(a, b, params)
     res.correspondences = len(corr)
     t2 = time.perf_counter()
-    clusters = hough_clusters(a, b, corr, params) + hough_clusters(b, a, corr[:, ::-1], params)
+    clusters = _clusters(a, b, corr, params, prior)
     t3 = time.perf_counter()
     res.timings.update(features=t1 - t0, correspondences=t2 - t1, hough=t3 - t2)
     best = None
@@ -433,7 +454,7 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
             continue
         if params.ransac_dof == 6 and max(map(abs, roll_pitch(T[:3, :3]))) > params.max_roll_pitch_initial_rad:
             continue
-        if not _within(T, prior, params.sigma_bound, params.hypothesis_sigma_m):
+        if not _within(T, prior, params.sigma_bound, params.hypothesis_sigma_m, params.hypothesis_sigma_m / _lever(a.points[ia])):
             continue
         off_line = min(off_line_count(a.points[ia], params.line_distance_m, 50, rng), off_line_count(b.points[ib], params.line_distance_m, 50, rng))
         if off_line < params.min_off_line_inliers:
@@ -464,7 +485,8 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
         res.reason = "roll/pitch"
     else:
         cov = match_covariance(fit, params)
-        if _within(T, prior, params.sigma_bound, np.maximum(np.sqrt(np.diag(cov)[3:]), params.hypothesis_sigma_m)):
+        sigma_t = np.maximum(np.sqrt(np.diag(cov)[3:]), params.hypothesis_sigma_m)
+        if _within(T, prior, params.sigma_bound, sigma_t, float(sigma_t.max()) / max(fit.overlap_radius_m, _MIN_LEVER_M)):
             res.T_a_b, res.cov = T, cov
         else:
             res.reason = "outside 2 sigma"
@@ -478,7 +500,7 @@ def match_covariance(fit: IcpResult, params: MatcherParams) -> np.ndarray:
     radius for yaw; roll and pitch from ``roll_pitch_sigma_rad`` (4D: fixed at zero by
     construction, so only the origins' own roll/pitch errors remain) or as yaw (6D)."""
     s_t = max(fit.rmse_m, 1e-3)
-    s_yaw = s_t / max(fit.overlap_radius_m, 0.5)
+    s_yaw = s_t / max(fit.overlap_radius_m, _MIN_LEVER_M)
     s_rp = params.roll_pitch_sigma_rad if params.dof == 4 else s_yaw
     return np.diag(np.square([s_rp, s_rp, s_yaw, s_t, s_t, s_t]))
 
@@ -494,6 +516,7 @@ class Candidate:
     overlap_m2: float
     sigma_xyz: np.ndarray
     score: float
+    sigma_yaw: float | None = None  # rad, relative yaw (ours: the checks bound the yaw too)
 
 
 def pair_key(a: SubmapKey, b: SubmapKey) -> PairKey:
@@ -526,6 +549,7 @@ def evaluate_pair(ka: Keypoints, kb: Keypoints, S_a: np.ndarray, S_b: np.ndarray
         area,
         np.sqrt(np.maximum(np.diag(R_a.T @ R @ cov_t @ R.T @ R_a), 0.0)),
         params.alpha * area + float(sigma.sum()),
+        params.sigma_scale * math.sqrt(max(cov_ab[2, 2], 0.0)),
     )
 
 
@@ -598,10 +622,10 @@ __all__ = [
     "MatcherParams",
     "PairQueue",
     "Prior",
+    "Voting",
     "compute_features",
     "correspondences",
     "evaluate_pair",
-    "hough_clusters",
     "match_pair",
     "pair_key",
     "prepare",
