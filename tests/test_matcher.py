@@ -253,6 +253,33 @@ def test_rendered_submaps_of_the_same_rocks_match(rendered, mode, keypoints, icp
     np.testing.assert_array_equal(again.T_a_b, res.T_a_b)  # seeded: the same result
 
 
+@pytest.mark.parametrize("keypoints", ["obstacles", "both"])
+def test_yaw_sweep_voting_matches_the_rendered_submaps(rendered, keypoints):
+    """The yaw sweep (no local reference frames) finds the same transform, with and without a prior."""
+    (A, O_a), (B, O_b), _, _ = rendered
+    p = MatcherParams(keypoints=keypoints, voting="yaw_sweep")
+    T_true = np.linalg.inv(O_a) @ O_b
+    for prior in (None, Prior(T_true, np.full(3, 0.2), math.radians(2.0))):
+        res = match_pair(prepare(A, p), prepare(B, p), p, prior)
+        assert res.success, res.reason
+        t_err, yaw_err = errors(res.T_a_b, T_true)
+        assert t_err < 0.1 and yaw_err < 1.0
+        assert prepare(A, p).frames is None  # no reference frames computed for it
+
+
+@pytest.mark.parametrize("voting", ["hough3d", "yaw_sweep"])
+def test_a_prior_off_in_yaw_rejects_the_match(rendered, voting):
+    """The plausibility check bounds the yaw where the graph gives its sigma: a prior 10 deg
+    off with 1 deg sigma rejects the right match, the same prior without a yaw sigma does not."""
+    (A, O_a), (B, O_b), _, _ = rendered
+    p = MatcherParams(voting=voting)
+    T_true = np.linalg.inv(O_a) @ O_b
+    turned = T_true.copy()
+    turned[:3, :3] = rot_z(math.radians(10.0)) @ T_true[:3, :3]
+    assert not match_pair(prepare(A, p), prepare(B, p), p, Prior(turned, np.full(3, 0.2), math.radians(1.0))).success
+    assert match_pair(prepare(A, p), prepare(B, p), p, Prior(turned, np.full(3, 0.2))).success
+
+
 def test_prior_far_from_the_match_rejects_it(rendered):
     (A, O_a), (B, O_b), _, _ = rendered
     p = MatcherParams()
@@ -380,6 +407,10 @@ def test_params_validation():
     assert MatcherParams(keypoints="geometry").keypoints is KeypointSelection.GEOMETRY
     with pytest.raises(ValueError, match="icp_points"):
         MatcherParams(icp_points="near")
+    with pytest.raises(ValueError, match="voting"):
+        MatcherParams(voting="lrf")
+    with pytest.raises(ValueError, match="hough_yaw_step_rad"):
+        MatcherParams(hough_yaw_step_rad=0.0)
 
 
 def _chain(graph, robot: str, target: np.ndarray, frames: int, sigma_m: float) -> None:
