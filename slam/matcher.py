@@ -372,9 +372,10 @@ def _within(T: np.ndarray, prior: Prior | None, bound: float, sigma_xyz: np.ndar
     through on Etna (docs/matching.md, "Voting without reference frames")."""
     if prior is None:
         return True
-    yaw_off = abs(wrap_angle(yaw_of(T[:3, :3]) - yaw_of(prior.T_a_b[:3, :3])))
-    if prior.sigma_yaw is not None and yaw_off > bound * math.hypot(prior.sigma_yaw, sigma_yaw):
-        return False
+    if prior.sigma_yaw is not None:
+        yaw_off = abs(wrap_angle(yaw_of(T[:3, :3]) - yaw_of(prior.T_a_b[:3, :3])))
+        if yaw_off > bound * math.hypot(prior.sigma_yaw, sigma_yaw):
+            return False
     return bool(np.all(np.abs(T[:3, 3] - prior.T_a_b[:3, 3]) <= bound * np.hypot(prior.sigma_xyz, sigma_xyz)))
 
 
