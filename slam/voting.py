@@ -25,6 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
+# the yaw sweep evaluates neighbourhood sums around its fullest cells only (not tuned): a true
+# cluster spreads over at most two cells per axis (noise and half a yaw step over the lever)
+_SWEEP_CANDIDATES = 4000
 _OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
 
 
@@ -76,9 +79,7 @@ def yaw_sweep(
     t[..., 0] = p[:, 0] - (c * q[:, 0] - s * q[:, 1])
     t[..., 1] = p[:, 1] - (s * q[:, 0] + c * q[:, 1])
     t[..., 2] = p[:, 2] - q[:, 2]
-    # the neighbourhood sums are evaluated around the fullest cells only: a true cluster
-    # spreads over at most two cells per axis (noise and half a yaw step over the lever)
-    return _peaks(np.floor(t / bin_m).astype(np.int64), min_votes, max_clusters, 4000)
+    return _peaks(np.floor(t / bin_m).astype(np.int64), min_votes, max_clusters, _SWEEP_CANDIDATES)
 
 
 def _peaks(cells: np.ndarray, min_votes: int, max_clusters: int, candidates: int | None) -> list[np.ndarray]:
