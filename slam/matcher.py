@@ -46,7 +46,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.lie import roll_pitch, wrap_angle, yaw_of
-from slam.registration import IcpResult, icp, off_line_count, ransac
+from slam.registration import IcpResult, horizontal_radius, icp, off_line_count, ransac
 from slam.submap import Submap, voxel_filter
 from slam.voting import hough3d, yaw_sweep
 
@@ -368,24 +368,21 @@ def _within(T: np.ndarray, prior: Prior | None, bound: float, sigma_xyz: np.ndar
     """The plausibility check of 6.1.2: ``T``'s translation within ``bound`` sigmas of the graph's. Both are
     estimates, so the sigma of their difference is that of the graph and that of ``T`` (``sigma_xyz``) combined;
     the graph's alone rejects correct closures whenever it is more certain than the match. Ours: the yaw too
-    (``sigma_yaw``, T's), where the prior has a yaw sigma; a translation check alone let hypotheses 9-34 deg off
+    (``sigma_yaw``, T's), where the prior has a yaw sigma; a translation check alone let hypotheses 10-34 deg off
     through on Etna (docs/matching.md, "Voting without reference frames")."""
     if prior is None:
         return True
-    if prior.sigma_yaw is not None:
-        yaw_off = abs(wrap_angle(yaw_of(T[:3, :3]) - yaw_of(prior.T_a_b[:3, :3])))
-        if yaw_off > bound * math.hypot(prior.sigma_yaw, sigma_yaw):
-            return False
+    if prior.sigma_yaw is not None and abs(wrap_angle(yaw_of(T[:3, :3]) - yaw_of(prior.T_a_b[:3, :3]))) > _yaw_bound(prior, bound, sigma_yaw):
+        return False
     return bool(np.all(np.abs(T[:3, 3] - prior.T_a_b[:3, 3]) <= bound * np.hypot(prior.sigma_xyz, sigma_xyz)))
 
 
 _MIN_LEVER_M = 0.5  # the shortest lever a translation sigma is turned into a yaw sigma over
 
 
-def _lever(points: np.ndarray) -> float:
-    """RMS horizontal distance of ``points`` from their centroid, at least ``_MIN_LEVER_M``: the lever over
-    which a translation sigma becomes a yaw sigma (as :func:`match_covariance` does with the ICP's overlap)."""
-    return max(float(np.sqrt(np.mean(np.sum((points[:, :2] - points[:, :2].mean(axis=0)) ** 2, axis=1)))), _MIN_LEVER_M)
+def _yaw_bound(prior: Prior, bound: float, sigma_yaw: float) -> float:
+    """The largest yaw offset from ``prior`` the plausibility check accepts (a match's yaw sigma ``sigma_yaw``)."""
+    return bound * math.hypot(prior.sigma_yaw, sigma_yaw)
 
 
 def _clusters(a: Keypoints, b: Keypoints, corr: np.ndarray, params: MatcherParams, prior: Prior | None) -> list[np.ndarray]:
@@ -394,7 +391,7 @@ def _clusters(a: Keypoints, b: Keypoints, corr: np.ndarray, params: MatcherParam
     if params.voting is Voting.YAW_SWEEP:
         window = None
         if prior is not None and prior.sigma_yaw is not None:  # the yaws _within can accept, at the shortest lever
-            window = (yaw_of(prior.T_a_b[:3, :3]), params.sigma_bound * math.hypot(prior.sigma_yaw, params.hypothesis_sigma_m / _MIN_LEVER_M))
+            window = (yaw_of(prior.T_a_b[:3, :3]), _yaw_bound(prior, params.sigma_bound, params.hypothesis_sigma_m / _MIN_LEVER_M))
         return yaw_sweep(a.points, b.points, corr, params.hough_bin_m, params.hough_yaw_step_rad, params.hough_min_votes, params.max_clusters, window)
     votes = (params.hough_bin_m, params.hough_min_votes, params.max_clusters)
     return hough3d(a.points, a.frames, b.points, b.frames, corr, *votes) + hough3d(b.points, b.frames, a.points, a.frames, corr[:, ::-1], *votes)
@@ -455,7 +452,8 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
             continue
         if params.ransac_dof == 6 and max(map(abs, roll_pitch(T[:3, :3]))) > params.max_roll_pitch_initial_rad:
             continue
-        if not _within(T, prior, params.sigma_bound, params.hypothesis_sigma_m, params.hypothesis_sigma_m / _lever(a.points[ia])):
+        sigma_yaw = params.hypothesis_sigma_m / max(horizontal_radius(a.points[ia]), _MIN_LEVER_M)  # over the matched points' lever
+        if not _within(T, prior, params.sigma_bound, params.hypothesis_sigma_m, sigma_yaw):
             continue
         off_line = min(off_line_count(a.points[ia], params.line_distance_m, 50, rng), off_line_count(b.points[ib], params.line_distance_m, 50, rng))
         if off_line < params.min_off_line_inliers:

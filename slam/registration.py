@@ -265,5 +265,10 @@ def icp(
             break
     if len(x) < min_pairs:
         return None
-    radius = float(np.sqrt(np.mean(np.sum((x[:, :2] - x[:, :2].mean(axis=0)) ** 2, axis=1))))
-    return IcpResult(T, float(np.sqrt(np.mean(np.sum((x - p) ** 2, axis=1)))), len(x), radius, done, converged)
+    return IcpResult(T, float(np.sqrt(np.mean(np.sum((x - p) ** 2, axis=1)))), len(x), horizontal_radius(x), done, converged)
+
+
+def horizontal_radius(points: np.ndarray) -> float:
+    """RMS horizontal distance of ``points`` from their centroid: the lever over which a
+    translation error becomes a yaw error."""
+    return float(np.sqrt(np.mean(np.sum((points[:, :2] - points[:, :2].mean(axis=0)) ** 2, axis=1))))
