@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from slam.lie import rot_z, se3, so3_exp
+from slam.lie import rot_z, se3, so3_exp_batch
 from slam.voting import hough3d, yaw_sweep
 
 TRUE_YAW = math.radians(37.0)
@@ -28,7 +28,7 @@ def problem():
     wrong = wrong[wrong[:, 0] != wrong[:, 1]]
     corr = np.vstack([np.column_stack([right, right]), wrong])
     is_right = np.arange(len(corr)) < len(right)
-    return scene, model, corr, is_right, rng
+    return scene, model, corr, is_right
 
 
 def _best(clusters: list[np.ndarray], is_right: np.ndarray) -> int:
@@ -36,7 +36,7 @@ def _best(clusters: list[np.ndarray], is_right: np.ndarray) -> int:
 
 
 def test_yaw_sweep_clusters_the_right_correspondences(problem):
-    scene, model, corr, is_right, _ = problem
+    scene, model, corr, is_right = problem
     clusters = yaw_sweep(scene, model, corr, 0.3, math.radians(2.0), 5, 8)
     assert clusters and _best(clusters, is_right) >= 38
     first = clusters[0]  # the largest peak is the right one: a quarter of it right against 1.3 % of all
@@ -44,7 +44,7 @@ def test_yaw_sweep_clusters_the_right_correspondences(problem):
 
 
 def test_yaw_sweep_votes_only_inside_its_window(problem):
-    scene, model, corr, is_right, _ = problem
+    scene, model, corr, is_right = problem
     inside = yaw_sweep(scene, model, corr, 0.3, math.radians(2.0), 5, 8, (TRUE_YAW + math.radians(3.0), math.radians(6.0)))
     assert _best(inside, is_right) >= 38
     outside = yaw_sweep(scene, model, corr, 0.3, math.radians(2.0), 5, 8, (TRUE_YAW + math.radians(90.0), math.radians(10.0)))
@@ -54,11 +54,13 @@ def test_yaw_sweep_votes_only_inside_its_window(problem):
 def test_hough3d_clusters_them_only_with_frames_that_agree(problem):
     """With each scene frame the model frame turned by the true rotation, Hough3D groups the
     right correspondences; with the frames 45 deg apart (random axes) their votes scatter."""
-    scene, model, corr, is_right, rng = problem
-    model_frames = np.stack([so3_exp(v) for v in rng.normal(0, 1, (len(model), 3))])  # rows x, y, z
+    scene, model, corr, is_right = problem
+    rng = np.random.default_rng(6)
+    model_frames = so3_exp_batch(rng.normal(0, 1, (len(model), 3)))  # rows x, y, z
     scene_frames = model_frames @ T_TRUE[:3, :3].T
     exact = hough3d(scene, scene_frames, model, model_frames, corr, 0.3, 5, 8)
     assert _best(exact, is_right) >= 38
-    turn = np.stack([so3_exp(math.radians(45.0) * v / np.linalg.norm(v)) for v in rng.normal(0, 1, (len(scene), 3))])
+    axes = rng.normal(0, 1, (len(scene), 3))
+    turn = so3_exp_batch(math.radians(45.0) * axes / np.linalg.norm(axes, axis=1, keepdims=True))
     apart = hough3d(scene, np.einsum("nij,njk->nik", scene_frames, turn), model, model_frames, corr, 0.3, 5, 8)
     assert _best(apart, is_right) < 20
