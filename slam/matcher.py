@@ -128,7 +128,9 @@ class MatcherParams:
     hough_yaw_step_rad: float = math.radians(2.0)
     ransac_iterations: int = 100
     ransac_inlier_m: float = 0.2
-    min_inliers: int = 6  # distinct keypoints on each side supporting a hypothesis
+    # distinct keypoints on each side supporting a hypothesis: the correct closures of the Etna and rock field runs and
+    # replays had 12-593, a wrong one 0.58 m off had 7 (docs/matching.md, "Voting without reference frames")
+    min_inliers: int = 10
     min_off_line_inliers: int = 3  # matched keypoints off the RANSAC line, in each submap
     max_roll_pitch_initial_rad: float = math.radians(10.0)  # 6D RANSAC only (8.1.2)
     max_roll_pitch_final_rad: float = math.radians(1.0)  # 6D and 4D+6D ICP (8.1.2)
