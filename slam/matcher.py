@@ -382,6 +382,11 @@ def _within(T: np.ndarray, prior: Prior | None, bound: float, sigma_xyz: np.ndar
 _MIN_LEVER_M = 0.5  # the shortest lever a translation sigma is turned into a yaw sigma over
 
 
+def _yaw_sigma(sigma_m: float, lever_m: float) -> float:
+    """A translation sigma turned into a yaw sigma over ``lever_m`` (at least ``_MIN_LEVER_M``)."""
+    return sigma_m / max(lever_m, _MIN_LEVER_M)
+
+
 def _yaw_bound(prior: Prior, bound: float, sigma_yaw: float) -> float:
     """The largest yaw offset from ``prior`` the plausibility check accepts (a match's yaw sigma ``sigma_yaw``)."""
     return bound * math.hypot(prior.sigma_yaw, sigma_yaw)
@@ -393,7 +398,7 @@ def _clusters(a: Keypoints, b: Keypoints, corr: np.ndarray, params: MatcherParam
     if params.voting is Voting.YAW_SWEEP:
         window = None
         if prior is not None and prior.sigma_yaw is not None:  # the yaws _within can accept, at the shortest lever
-            window = (yaw_of(prior.T_a_b[:3, :3]), _yaw_bound(prior, params.sigma_bound, params.hypothesis_sigma_m / _MIN_LEVER_M))
+            window = (yaw_of(prior.T_a_b[:3, :3]), _yaw_bound(prior, params.sigma_bound, _yaw_sigma(params.hypothesis_sigma_m, 0.0)))
         return yaw_sweep(a.points, b.points, corr, params.hough_bin_m, params.hough_yaw_step_rad, params.hough_min_votes, params.max_clusters, window)
     votes = (params.hough_bin_m, params.hough_min_votes, params.max_clusters)
     return hough3d(a.points, a.frames, b.points, b.frames, corr, *votes) + hough3d(b.points, b.frames, a.points, a.frames, corr[:, ::-1], *votes)
@@ -454,7 +459,7 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
             continue
         if params.ransac_dof == 6 and max(map(abs, roll_pitch(T[:3, :3]))) > params.max_roll_pitch_initial_rad:
             continue
-        sigma_yaw = params.hypothesis_sigma_m / max(horizontal_radius(a.points[ia]), _MIN_LEVER_M)  # over the matched points' lever
+        sigma_yaw = _yaw_sigma(params.hypothesis_sigma_m, horizontal_radius(a.points[ia]))  # over the matched points' lever
         if not _within(T, prior, params.sigma_bound, params.hypothesis_sigma_m, sigma_yaw):
             continue
         off_line = min(off_line_count(a.points[ia], params.line_distance_m, 50, rng), off_line_count(b.points[ib], params.line_distance_m, 50, rng))
@@ -487,7 +492,7 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
     else:
         cov = match_covariance(fit, params)
         sigma_t = np.maximum(np.sqrt(np.diag(cov)[3:]), params.hypothesis_sigma_m)
-        if _within(T, prior, params.sigma_bound, sigma_t, float(sigma_t.max()) / max(fit.overlap_radius_m, _MIN_LEVER_M)):
+        if _within(T, prior, params.sigma_bound, sigma_t, _yaw_sigma(float(sigma_t.max()), fit.overlap_radius_m)):
             res.T_a_b, res.cov = T, cov
         else:
             res.reason = "outside 2 sigma"
@@ -501,7 +506,7 @@ def match_covariance(fit: IcpResult, params: MatcherParams) -> np.ndarray:
     radius for yaw; roll and pitch from ``roll_pitch_sigma_rad`` (4D: fixed at zero by
     construction, so only the origins' own roll/pitch errors remain) or as yaw (6D)."""
     s_t = max(fit.rmse_m, 1e-3)
-    s_yaw = s_t / max(fit.overlap_radius_m, _MIN_LEVER_M)
+    s_yaw = _yaw_sigma(s_t, fit.overlap_radius_m)
     s_rp = params.roll_pitch_sigma_rad if params.dof == 4 else s_yaw
     return np.diag(np.square([s_rp, s_rp, s_yaw, s_t, s_t, s_t]))
 
