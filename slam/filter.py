@@ -180,6 +180,10 @@ class FilterParams:
     goes onto the keyframe's clone once (:meth:`LocalReferenceFilter.update_relative_pose`,
     ``keyframe_map_cov``) instead of into every delta; False: each delta with its whole
     covariance, as thesis 4.1.1.
+    ``motion_accel_density`` (m/s^2/sqrt(Hz)) and ``motion_turn_density`` (rad/s/sqrt(Hz)):
+    the robot's own motion as white-noise acceleration and turn rate, the process noise of
+    :meth:`LocalReferenceFilter.propagate_without_imu` while the IMU gives nothing usable
+    (None: no such model).
     """
 
     gyro_noise_density: float
@@ -205,6 +209,8 @@ class FilterParams:
     disparity_bias_std: float = 0.25
     focal_scale_std: float = 0.0
     keyframe_map_error: bool = True
+    motion_accel_density: float | None = None
+    motion_turn_density: float | None = None
 
     def __post_init__(self):
         for name in ("gyro_noise_density", "accel_noise_density", "gyro_bias_random_walk", "accel_bias_random_walk"):
@@ -238,6 +244,9 @@ class FilterParams:
                 raise FilterException(f"FilterParams.{name} must be in (0, 1) or None, got {p!r}")
         if self.gate_probability is None:
             raise FilterException("FilterParams.gate_probability must be in (0, 1), got None")
+        densities = (self.motion_accel_density, self.motion_turn_density)
+        if (densities[0] is None) != (densities[1] is None) or any(d is not None and not d > 0.0 for d in densities):
+            raise FilterException(f"FilterParams.motion_accel_density and motion_turn_density must both be > 0 or both None, got {densities}")
 
 
 def _vector(x, n: int, name: str) -> np.ndarray:
@@ -581,6 +590,10 @@ class LocalReferenceFilter:
         if t < self._t:
             raise FilterException(f"IMU sample at t={t} is older than the filter time {self._t}")
         self._propagate(t, f, w)
+        self._log_imu(t, f, w)
+
+    def _log_imu(self, t: float, f: np.ndarray | None, w: np.ndarray | None) -> None:
+        """Keep an IMU step for the replays (``None``: one without the IMU)."""
         if self._log:
             self._log.append(["imu", t, f, w])
             if self._log[0][1] < self._t - self.params.replay_horizon_s:
@@ -606,6 +619,46 @@ class LocalReferenceFilter:
         self._R = R1
         self._t = t
         self._f_prev, self._w_prev, self._dt_last = f1, w1, dt
+
+    def propagate_without_imu(self, t: float) -> None:
+        """Advance to ``t`` without IMU samples (the IMU's output is unusable, e.g. stuck):
+        constant velocity and attitude, with the robot's own motion as white-noise
+        acceleration and turn rate (``FilterParams.motion_accel_density``,
+        ``motion_turn_density``) for process noise; the biases walk as usual. Unlike a
+        strapdown step no bias, tilt or consider parameter enters the motion, so the
+        visual-odometry deltas that follow calibrate none of them. The next IMU sample
+        starts the next interval afresh."""
+        if self.params.motion_accel_density is None:
+            raise FilterException("propagate_without_imu needs FilterParams.motion_accel_density and motion_turn_density")
+        t = float(t)
+        if t < self._t:
+            raise FilterException(f"propagation to t={t} is older than the filter time {self._t}")
+        self._propagate_without_imu(t)
+        self._log_imu(t, None, None)
+
+    def _propagate_without_imu(self, t: float) -> None:
+        dt = t - self._t
+        self._f_prev = self._w_prev = None
+        if dt <= 0.0:
+            return
+        params = self.params
+        self._p = self._p + dt * self._v
+        d = self._dim
+        P = self._Pbuf
+        P[_P, :d] += dt * P[_V, :d]  # Phi = I with dp += dt dv, applied to rows, then to columns
+        P[:d, _P] += dt * P[:d, _V]
+        sa2, sg2 = params.motion_accel_density**2, params.motion_turn_density**2
+        Q = np.zeros((CORE, CORE))
+        I3 = np.eye(3)
+        Q[_P, _P] = sa2 * dt**3 / 3.0 * I3
+        Q[_P, _V] = Q[_V, _P] = sa2 * dt**2 / 2.0 * I3
+        Q[_V, _V] = sa2 * dt * I3
+        Q[_TH, _TH] = sg2 * dt * I3
+        Q[_BA, _BA] = params.accel_bias_random_walk**2 * dt * I3
+        Q[_BW, _BW] = params.gyro_bias_random_walk**2 * dt * I3
+        P[:CORE, :CORE] += Q  # the consider parameters and clones stand still
+        self._t = t
+        self._dt_last = dt
 
     def _process_noise(self, dt: float) -> np.ndarray:
         """``Qd = dt Q1 + dt^2 Q2 + dt^3 Q3``, cached for the IMU interval rounded to 1 ns (a
@@ -800,7 +853,8 @@ class LocalReferenceFilter:
         ``(v_x, v_y)`` with a 2x2 ``cov`` or ``(v_x, v_y, v_z)`` with 3x3 (pass ``v_z = 0`` with a
         small variance for the no-lift constraint of a rover). Optionally the body yaw rate
         (rate about body z) with its variance, which observes the z gyro bias through the
-        latest gyro sample. Returns the NIS; gated only if ``params.velocity_gate_probability``
+        latest gyro sample (left out without one: before the first sample, or after
+        :meth:`propagate_without_imu`). Returns the NIS; gated only if ``params.velocity_gate_probability``
         is set (then a rejected update leaves the state unchanged)."""
         v_body = np.array(v_body, dtype=float)
         m = v_body.shape[0] if v_body.ndim == 1 else 0
@@ -812,8 +866,6 @@ class LocalReferenceFilter:
         if yaw_rate is not None:
             if not yaw_rate_var > 0.0:
                 raise FilterException(f"yaw_rate_var must be > 0, got {yaw_rate_var!r}")
-            if self._w_prev is None:
-                raise FilterException("a yaw-rate update needs an IMU sample first")
         args = (v_body, C, None if yaw_rate is None else float(yaw_rate), None if yaw_rate_var is None else float(yaw_rate_var))
         nis = self._velocity(*args)
         if self._log:
@@ -823,6 +875,8 @@ class LocalReferenceFilter:
     def _velocity(self, v_body, C, yaw_rate, yaw_rate_var) -> float:
         m = v_body.shape[0]
         RT = self._R.T
+        if self._w_prev is None:  # no gyro sample to compare the rate with (propagate_without_imu)
+            yaw_rate = None
         n = m + (yaw_rate is not None)
         idx = np.r_[3:9, 12:15]  # dv, dtheta, db_w
         H = np.zeros((n, 9))
@@ -851,7 +905,7 @@ class LocalReferenceFilter:
         """Zero-velocity update for a robot known to stand still: ``v = 0`` with
         ``velocity_std`` per axis and, if ``angular_rate_std`` is given, ``omega = 0``
         (observes the gyro biases). The rate is read from the latest gyro sample (variance
-        ``angular_rate_std^2`` plus one sample's white noise), or from ``gyro_mean``, the
+        ``angular_rate_std^2`` plus one sample's white noise; left out without one), or from ``gyro_mean``, the
         mean raw gyro reading over the rest window, whose variance per axis is
         ``angular_rate_std^2 + gyro_mean_var`` (``gyro_mean_var``: the white noise of that
         mean, ``gyro_noise_density^2 / duration``). With the IMU alone this is what makes
@@ -872,8 +926,6 @@ class LocalReferenceFilter:
             if not gyro_mean_var > 0.0:
                 raise FilterException(f"gyro_mean_var must be > 0, got {gyro_mean_var!r}")
             gyro_mean_var = float(gyro_mean_var)
-        elif angular_rate_std is not None and self._w_prev is None:
-            raise FilterException("a zero-rate update needs an IMU sample first")
         if gate_probability is not None and not 0.0 < gate_probability < 1.0:
             raise FilterException(f"gate_probability must be in (0, 1) or None, got {gate_probability!r}")
         args = (float(velocity_std), None if angular_rate_std is None else float(angular_rate_std), gyro_mean, gyro_mean_var, gate_probability)
@@ -888,7 +940,7 @@ class LocalReferenceFilter:
         return _chi2_gate(gate_probability, 3)
 
     def _zero_velocity(self, velocity_std, angular_rate_std, gyro_mean=None, gyro_mean_var=None, gate_probability=None) -> float:
-        if angular_rate_std is None:
+        if angular_rate_std is None or (gyro_mean is None and self._w_prev is None):
             idx = np.r_[3:6]
             H = np.eye(3)
             r = -self._v
@@ -1044,7 +1096,10 @@ class LocalReferenceFilter:
         for event in self._log[i + 1 :]:
             kind = event[0]
             if kind == "imu":
-                self._propagate(event[1], event[2], event[3])
+                if event[2] is None:
+                    self._propagate_without_imu(event[1])
+                else:
+                    self._propagate(event[1], event[2], event[3])
             elif kind == "clone":
                 self._clone(event[2])
                 event[3] = self._snapshot()

@@ -26,7 +26,7 @@ class Health:
     """``state`` since time ``since`` (when the state was entered), with a ``reason``:
     ``"vo lost"`` (VO failures, or no VO results at all), ``"vo rejected"`` (VO deltas
     rejected), ``"no vo"`` (an estimator without VO), ``"uncertain"`` (the covariance bound
-    alone); empty when ok. ``detail``: the last VO failure or rejection reason, or which
+    alone), ``"imu stuck"`` (its samples bridged by a motion model); empty when ok. ``detail``: the last VO failure or rejection reason, or which
     bound was exceeded."""
 
     state: HealthState

@@ -7,7 +7,7 @@ estimates back. The camera-to-body transform of each capture comes from the call
 (on the LRU it changes with the pan-tilt head; thesis 7.1), so VO deltas, computed
 between left-camera frames, are turned into body-frame deltas between filter clones.
 
-Two additions make sure the estimator never fails silently:
+Three additions make sure the estimator never fails silently:
 
 - Rest detection and zero-velocity updates (:mod:`slam.rest`):
   a robot standing still (rovers at waypoints, a landed hexacopter) applies
@@ -18,6 +18,15 @@ Two additions make sure the estimator never fails silently:
   are applied (or the robot rests), ``degraded`` with a reason when no delta has been
   applied for a while, ``lost`` when that lasts or the filter's own covariance says the
   estimate is no longer usable; transitions are kept in :attr:`LocalEstimator.health_history`.
+- A stuck IMU (ours; the thesis's filter trusts every sample): a driver or bus that
+  freezes repeats its last sample, and a saturated axis repeats its range's limit, which
+  a working IMU's white noise never does on any channel. When a channel has given
+  :data:`STUCK_SAMPLES` bit-identical samples in a row the estimator stops integrating
+  the samples and propagates with the robot's own motion model instead
+  (:meth:`slam.filter.LocalReferenceFilter.propagate_without_imu`), leaves them out of
+  rest detection (a frozen IMU looks perfectly still) and calls its health ``degraded``
+  (``imu stuck``, the channels in the detail) until every channel moves again. Without
+  that model in :class:`slam.filter.FilterParams` every sample is integrated as before.
 """
 
 from __future__ import annotations
@@ -33,6 +42,11 @@ from slam.health import Health, HealthParams, HealthState
 from slam.lie import adjoint, se3_inv, so3_log
 from slam.rest import RestDetector, RestParams, RestStats, chi2_3
 from slam.vo import StereoVO, VoResult, delta_in_body_frame, extrinsic_sensitivity
+
+#: Bit-identical values of one IMU channel in a row from which it counts as stuck (the
+#: first of them is the last good one; at 200 Hz the two repeats before the detection span 10 ms).
+STUCK_SAMPLES = 3
+_CHANNELS = ("accel x", "accel y", "accel z", "gyro x", "gyro y", "gyro z")
 
 
 class EstimatorException(Exception):
@@ -151,6 +165,11 @@ class LocalEstimator:
         self.health_history: list[tuple[float, str, str]] = []
         self._last_zupt_t = -math.inf
         self._vo_trouble: tuple[str, str] | None = None  # the latest VO outcome since the last applied delta
+        # stuck IMU
+        self._imu_last: np.ndarray | None = None  # the latest sample's six channels
+        self._imu_repeats = np.zeros(6, int)  # per channel: samples equal to the one before, in a row
+        self.imu_outages: list[list[float]] = []  # [start, end] of each stuck interval the filter bridged
+        self._imu_stuck_now = False
 
     @property
     def initialised(self) -> bool:
@@ -180,15 +199,58 @@ class LocalEstimator:
                 self.health = Health(HealthState.OK, "", self.filter.t)
                 self.health_history.append((self.filter.t, HealthState.OK.value, ""))
             return
-        self.filter.propagate(t, accel, gyro)
+        stuck = self._stuck(np.array(accel, float), np.array(gyro, float))
+        changed = stuck != self._imu_stuck_now
+        if changed:
+            self._imu_stuck_now = stuck
+            self._rest_detector.restart()
+            if stuck:
+                self.imu_outages.append([float(t), float(t)])
+                self._rest_since, self._at_rest = None, False
+                self._run.clear()
+        if stuck:
+            self.filter.propagate_without_imu(t)
+            self.imu_outages[-1][1] = float(t)
+        else:
+            self.filter.propagate(t, accel, gyro)
         self._propagated = True
         p = self.filter.pose()[:3, 3]
         self._distance += float(np.linalg.norm(p - self._last_p))
         self._last_p = p
         if self.frame_switch_distance is not None and self._distance >= self.frame_switch_distance:
             self.frame_switch()
-        if self._rest_step(t, accel, gyro):
+        window_ended = not stuck and self._rest_step(t, accel, gyro)
+        if changed or window_ended:
             self._update_health(t)
+
+    @property
+    def imu_bridged(self) -> bool:
+        """Whether the estimate still rests on the motion model that bridged a stuck IMU:
+        while it is stuck, and after it until a VO delta captured since has been applied
+        (at most ``health_params.vo_timeout_s``). Until then the current state's attitude
+        and position carry the unaided turn and drift of the bridge."""
+        if self._imu_stuck_now:
+            return True
+        if not self.imu_outages:
+            return False
+        end = self.imu_outages[-1][1]
+        last = self.vo_stats.last_applied_t
+        return (last is None or last <= end) and self.filter.t - end < self.health_params.vo_timeout_s
+
+    def _stuck(self, accel: np.ndarray, gyro: np.ndarray) -> bool:
+        """Count each channel's repeats of the sample before; stuck while any channel has
+        :data:`STUCK_SAMPLES` identical values in a row (only where the filter has a motion
+        model to bridge them with)."""
+        x = np.concatenate([accel, gyro])
+        same = x == self._imu_last if self._imu_last is not None else np.zeros(6, bool)
+        self._imu_repeats = np.where(same, self._imu_repeats + 1, 0)
+        self._imu_last = x
+        return self.params.motion_accel_density is not None and bool(np.any(self._imu_repeats >= STUCK_SAMPLES - 1))
+
+    def _stuck_detail(self) -> str:
+        frozen = self._imu_repeats >= STUCK_SAMPLES - 1
+        names = "all channels" if frozen.all() else ", ".join(n for n, f in zip(_CHANNELS, frozen, strict=True) if f)
+        return f"{names} since {self.imu_outages[-1][0]:.2f} s"
 
     def _rest_gyro_bias_std(self) -> float:
         """Error of the resting gyro mean as a bias estimate: white noise averaged over the
@@ -239,7 +301,8 @@ class LocalEstimator:
             return False
         self.filter.clone(frame_id, t)
         self._T_body_cam[frame_id] = np.asarray(T_body_cam, float)
-        self._camera_prior[frame_id] = self.T_first_current @ self.filter.clone_pose(frame_id) @ self._T_body_cam[frame_id]
+        if not self._imu_stuck_now:  # bridged without the IMU the filter cannot predict a turn: the VO's own motion model then
+            self._camera_prior[frame_id] = self.T_first_current @ self.filter.clone_pose(frame_id) @ self._T_body_cam[frame_id]
         self._capture_t[frame_id] = float(t)
         self._pending.add(frame_id)
         return True
@@ -515,6 +578,8 @@ class LocalEstimator:
             state, reason, detail = HealthState.LOST, "uncertain", bound
         else:
             state, reason, detail = HealthState.OK, "", ""
+        if self._imu_stuck_now and state is not HealthState.LOST:
+            state, reason, detail = HealthState.DEGRADED, "imu stuck", self._stuck_detail()
         h = self.health
         if state != h.state or reason != h.reason:
             self.health = Health(state, reason, t if state != h.state else h.since, detail)
@@ -541,6 +606,7 @@ class LocalEstimator:
             "time_since_vo_s": self.time_since_vo,
             "time_s": time_in,
             "transitions": [[t, state, reason] for t, state, reason in hist],
+            "imu_stuck": [list(span) for span in self.imu_outages],
         }
 
     def rest_report(self) -> dict:

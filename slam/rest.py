@@ -176,6 +176,13 @@ class RestDetector:
         self._accel: list[np.ndarray] = []
         self._gyro: list[np.ndarray] = []
 
+    def restart(self) -> None:
+        """Drop the window in progress: the next sample starts a new one (after a gap in
+        the usable samples)."""
+        self._t_start = None
+        self._accel.clear()
+        self._gyro.clear()
+
     def add(self, t: float, accel: np.ndarray, gyro: np.ndarray, accel_bias: np.ndarray, gyro_bias: np.ndarray) -> RestWindow | None:
         """One raw IMU sample with the filter's current bias estimates; returns the tested
         window when this sample completes one (``window_s`` since the last), else None.

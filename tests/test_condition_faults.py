@@ -127,6 +127,24 @@ def test_a_stuck_imu_repeats_one_sample_and_a_saturated_one_clips(run):
     assert np.abs(imu[~sat & (t > 1.0), 2]).max() > 1.4
 
 
+def test_the_estimator_bridges_the_stuck_and_the_saturated_imu(run):
+    """Both windows are noticed within the 10 ms of STUCK_SAMPLES and bridged by ARDEA's
+    motion model while its VO goes on (slam/local_estimator.py): its body velocity stays
+    within 0.15 m/s and its tilt within 2 deg of the truth through and after them (the
+    frozen or clipped samples integrated drifted 0.6-20 m/s and 4-5 deg off here)."""
+    est = run.robots["ardea"].onboard.estimator
+    assert len(est.imu_outages) == 2
+    for (start, end), span in zip(est.imu_outages, (STUCK, SATURATED), strict=True):
+        assert span[0] <= start <= span[0] + 0.011 and span[1] - 0.011 <= end < span[1]
+    reasons = [(round(t, 2), r) for t, _, r in est.health_history if r == "imu stuck"]
+    assert [t for t, _ in reasons] == [pytest.approx(s, abs=0.011) for s in (STUCK[0], SATURATED[0])]
+    log = run.robots["ardea"].onboard.log
+    t, x, truth = np.asarray(log.t), np.asarray(log.observable), np.asarray(log.observable_true)
+    after = t >= STUCK[0]
+    assert np.linalg.norm(x[after, 2:5] - truth[after, 2:5], axis=1).max() < 0.15
+    assert np.abs(x[after, :2] - truth[after, :2]).max() < math.radians(2.0)
+
+
 def test_a_failed_encoder_makes_wheel_odometry_read_three_quarters_of_the_speed(run):
     log = run.robots["lru1"].log
     odom_t, odom = np.asarray(log.odom_t), np.asarray(log.odom)

@@ -114,6 +114,11 @@ class Robot(ABC):
     default_vo_rig: ClassVar[str]
     #: Fastest ``route.speed_mps`` it can follow (m/s).
     max_speed_mps: ClassVar[float]
+    #: Its own motion as white-noise acceleration (m/s^2/sqrt(Hz)) and turn rate
+    #: (rad/s/sqrt(Hz)): the filter's process noise while its IMU is stuck
+    #: (slam.filter.FilterParams.motion_accel_density, slam/local_estimator.py).
+    motion_accel_density: ClassVar[float]
+    motion_turn_density: ClassVar[float]
     #: Wheel encoders: the run turns :meth:`wheel_states` into wheel odometry, which the filter fuses.
     has_wheel_odometry: ClassVar[bool] = False
     #: Names of its wheels, in the order of :meth:`wheel_states` (what an ``encoder_failure`` fault names).

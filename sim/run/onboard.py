@@ -71,9 +71,9 @@ def _deployment(start) -> np.ndarray:
     return se3(rot_z(math.radians(start.yaw_deg)), [start.xy[0], start.xy[1], 0.0])
 
 
-def filter_params(spec: ImuSpec, gravity: float, cfg: SlamConfig) -> FilterParams:
-    """The filter's noise model from the IMU's datasheet values (what the robot knows) and
-    the scenario's ``slam`` keys.
+def filter_params(spec: ImuSpec, gravity: float, cfg: SlamConfig, robot: type[Robot]) -> FilterParams:
+    """The filter's noise model from the IMU's datasheet values (what the robot knows), the
+    scenario's ``slam`` keys and the robot's own motion (what bridges a stuck IMU).
 
     Roll and pitch start from the resting accelerometer; the filter's prior correlates
     their error with the accelerometer bias (b / g), so only the small rest of the tilt
@@ -88,6 +88,8 @@ def filter_params(spec: ImuSpec, gravity: float, cfg: SlamConfig) -> FilterParam
         initial_accel_bias_std=spec.accel_bias_initial_std,
         initial_gyro_bias_std=spec.gyro_bias_initial_std,
         gravity=gravity,
+        motion_accel_density=robot.motion_accel_density,
+        motion_turn_density=robot.motion_turn_density,
     )
 
 
@@ -179,7 +181,7 @@ class OnboardStack:
         self.vo_rig = {rig.name: rig for rig in robot.stereo_rigs}[cfg.vo_rig or robot.default_vo_rig]  # checked by the scenario
         mapping = cfg.mapping
         self.estimator = LocalEstimator(
-            filter_params(imu_spec, gravity, cfg),
+            filter_params(imu_spec, gravity, cfg, type(robot)),
             StereoVO(calibration(self.vo_rig), VoParams(**slam_kwargs(VoParams, cfg))),
             init_time=robot.cfg.route.start_delay_s,
             rest_window=cfg.initial_rest_s,
@@ -393,8 +395,14 @@ class OnboardStack:
         self._check_partition(now)
 
     def _check_partition(self, now: float) -> None:
+        """Thesis 5.1.3's partition. None for the position std while the filter bridges a
+        stuck IMU: the std then grows with the motion model between VO updates, and a frame
+        switch would freeze the unaided attitude into the new frame (slam/local_estimator.py);
+        the distance still partitions, so that an IMU stuck for good does not grow one submap
+        without end."""
         est = self.estimator
-        reason = None if self._switch_pending else self.mapper.partition_due(est.position_std(), est.distance_in_frame)
+        std = 0.0 if est.imu_bridged else est.position_std()
+        reason = None if self._switch_pending else self.mapper.partition_due(std, est.distance_in_frame)
         if reason is None:
             return
         job = self.lane.submit("filter_update", work=lambda: self._new_submap(now, reason), on_done=lambda out, t: self._send(out))
