@@ -1097,7 +1097,8 @@ class ImuSaturationFault(FaultEntry):
 
 
 class EncoderFailureFault(FaultEntry):
-    """One wheel's encoder reads zero speed (a broken encoder or cable); wheel odometry goes on with it."""
+    """One wheel's encoder reads zero speed (a broken encoder or cable); the wheel odometry gets the zero, and its
+    encoder check leaves the wheel out where the others outvote it."""
 
     type: Literal["encoder_failure"] = Field(..., description="the fault's kind")
     wheel: str = Field("fl", description=f"the wheel whose encoder fails; wheels per preset: {_per_preset('wheel_names')}")

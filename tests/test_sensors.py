@@ -306,9 +306,9 @@ def steered_wheels(vx, vy, yaw_rate):
     ids=["straight", "reverse", "turning", "crab", "point-turn", "general"],
 )
 def test_wheel_odometry_recovers_body_velocity_of_steered_wheels(motion):
-    velocity, residual = body_velocity_from_wheels(steered_wheels(*motion))
+    velocity, residual, outvoted = body_velocity_from_wheels(steered_wheels(*motion))
     np.testing.assert_allclose(velocity, motion, atol=1e-12)
-    assert residual < 1e-12
+    assert residual < 1e-12 and outvoted is None
 
 
 def test_wheel_odometry_with_the_robots_wheel_state_type():
@@ -321,15 +321,30 @@ def test_wheel_odometry_skid_steer():
     """Unsteered wheels: straight is exact; a skid turn has no slip-free solution, and the
     fit is the least-slip motion (differential yaw rate x sum y^2 / sum (x^2 + y^2))."""
     straight = [wheel(x, y, 0.0, 0.3 / RADIUS) for x, y in LRU_WHEELS]
-    velocity, residual = body_velocity_from_wheels(straight)
+    velocity, residual, _ = body_velocity_from_wheels(straight)
     np.testing.assert_allclose(velocity, [0.3, 0.0, 0.0], atol=1e-12)
     v_left, v_right = 0.2, 0.4
     turn = [wheel(x, y, 0.0, (v_left if y > 0 else v_right) / RADIUS) for x, y in LRU_WHEELS]
-    velocity, residual = body_velocity_from_wheels(turn)
+    velocity, residual, outvoted = body_velocity_from_wheels(turn)
     differential = (v_right - v_left) / (2 * 0.32)  # right wheels faster: a left (ccw, positive) turn
     least_slip = differential * 0.32**2 / (0.32**2 + 0.35**2)
     np.testing.assert_allclose(velocity, [0.3, 0.0, least_slip], atol=1e-12)
-    assert residual > 0.01
+    assert residual > 0.01 and outvoted is None  # the wheels contradict each other: none is outvoted
+
+
+@pytest.mark.parametrize("failed", range(4))
+@pytest.mark.parametrize(
+    "motion", [(0.3, 0.0, 0.0), (0.3, 0.0, 0.25), (0.2, 0.1, 0.0), (0.0, 0.0, 0.4)], ids=["straight", "turning", "crab", "point-turn"]
+)
+def test_a_failed_encoder_is_outvoted_by_the_other_wheels(motion, failed):
+    """One encoder reads zero (the scenario's ``encoder_failure``): with it the fit is off
+    by a quarter; the other three give the body velocity exactly, and the wheel is named."""
+    wheels = steered_wheels(*motion)
+    wheels[failed] = wheel(wheels[failed].position_body[0], wheels[failed].position_body[1], wheels[failed].steer_angle, 0.0)
+    velocity, residual, outvoted = body_velocity_from_wheels(wheels)
+    assert outvoted == failed
+    np.testing.assert_allclose(velocity, motion, atol=1e-12)
+    assert residual < 1e-12
 
 
 def test_wheel_odometry_shows_slip_and_noise():

@@ -167,6 +167,8 @@ def _robot_results(run: Run, out: Path, name: str, truth: inputs.TeamTruth, reco
         "calibration": _calibration(run.calibration_errors[name], robot.stereo_rigs),
         **sections,
         "faults": fault_metrics(runtime.onboard, runtime.faults, run.sim_time),  # injected failures (sim/run/faults.py)
+        # samples in which the odometry's encoder check left a wheel out (sim/world/sensors.py)
+        "wheel_odometry_outvoted_samples": runtime.odometry.outvoted_samples if runtime.odometry is not None else None,
         "health": inputs.health_report(runtime.onboard, run.mission_s) if runtime.onboard is not None else None,
         "lane": {
             "utilization": runtime.lane.utilization(run.sim_time),
@@ -358,11 +360,13 @@ def _rest_against_truth(intervals: list[list[float]], truth: trajectory.Trajecto
 def plot_filter_errors(robots_metrics: dict[str, Any], plots: dict[str, FilterPlot | None], path: Path) -> None:
     """Filter-only position and yaw error over time, one line per robot."""
     fig, (ax_p, ax_y, ax_n) = plt.subplots(3, 1, figsize=(9, 8), sharex=True, dpi=110)
+    drawn = False
     for name, m in robots_metrics.items():
         f = m.get("filter") or {}
         plot = plots.get(name)
         if plot is None or plot.error_over_time is None:
             continue
+        drawn = True
         series = plot.error_over_time
         label = f"{name}: final {f['final_error_m']:.2f} m ({f['final_error_percent_of_distance']:.2f} % of {f['distance_m']:.0f} m)"
         ax_p.plot(series.t, series.position_m, label=label)
@@ -385,7 +389,10 @@ def plot_filter_errors(robots_metrics: dict[str, Any], plots: dict[str, FilterPl
     ax_p.set_title("local reference filter alone, in each robot's start frame (unaligned)")
     for ax in (ax_p, ax_y, ax_n):
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        if drawn:
+            ax.legend(fontsize=7)
+    if not drawn:
+        ax_p.text(0.5, 0.5, "no filter estimate: the run ended before any robot's filter started", transform=ax_p.transAxes, ha="center")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -30,7 +30,7 @@ the run (sim/run/runner.py) asks about them where the failing part works:
 - ``camera_dark``: the rendered images of the dark rigs are black before image formation (the sensor's noise
   stays, sim/world/imaging.py);
 - ``imu_stuck``: the IMU repeats the sample before the window; ``imu_saturation``: each axis clips;
-- ``encoder_failure``: one wheel's encoder reads zero speed, and wheel odometry uses it;
+- ``encoder_failure``: one wheel's encoder reads zero speed, which the wheel odometry gets (its encoder check, sim/world/sensors.py, may outvote it);
 - ``radio_silent``: every link to and from the robot is down (:meth:`comms.Network.radio_fault`);
 - ``compute_slowdown``: its lane's compute times are multiplied by ``factor``.
 
