@@ -12,18 +12,19 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_local_estimator_rest import DT, INIT_TIME, NoImages, VoFeed, estimator, feed, noisy_imu, rest_and_moves
+from test_local_estimator_rest import DT, INIT_TIME, NoImages, VoFeed, feed, filter_params, noisy_imu, rest_and_moves
 
+from sim.robots.lru import LRU
 from sim.world.sensors import IMU_PRESETS
 from slam.filter import FilterException, FilterParams, LocalReferenceFilter
 from slam.health import HealthParams
 from slam.lie import yaw_of
-from slam.local_estimator import STUCK_SAMPLES
+from slam.local_estimator import STUCK_SAMPLES, LocalEstimator
 
 SPEC = IMU_PRESETS["xsens_mti10"]
 STUCK = (7.0, 10.0)  # s: within the move's acceleration and turn
 NO_BOUNDS = HealthParams(max_position_std_m=None, max_velocity_std_mps=None)
-ROVER = dict(motion_accel_density=0.3, motion_turn_density=0.6)  # sim/robots/lru.py
+ROVER = dict(motion_accel_density=LRU.motion_accel_density, motion_turn_density=LRU.motion_turn_density)
 
 
 def run(stuck: bool, motion_model: bool, seed: int = 3):
@@ -36,9 +37,8 @@ def run(stuck: bool, motion_model: bool, seed: int = 3):
         inside = (tr.t >= STUCK[0]) & (tr.t < STUCK[1])
         before = np.flatnonzero(tr.t < STUCK[0])[-1]
         imu.f[inside], imu.w[inside] = imu.f[before], imu.w[before]
-    est = estimator(SPEC, NoImages(), health_params=NO_BOUNDS)
-    if motion_model:
-        est.params = replace(est.params, **ROVER)
+    params = replace(filter_params(SPEC), **(ROVER if motion_model else {}))
+    est = LocalEstimator(params, NoImages(), init_time=INIT_TIME, rest_window=0.5, health_params=NO_BOUNDS)
     vo = VoFeed(tr, np.random.default_rng(seed + 100))
     trace = []
 
@@ -99,11 +99,12 @@ def test_propagation_without_imu_is_constant_velocity_with_the_motion_noise():
     np.testing.assert_allclose(f.pose()[:3, 3], p0 + 2.0 * v0, atol=1e-12)
     np.testing.assert_array_equal(f.velocity(), v0)
     np.testing.assert_array_equal(f.pose()[:3, :3], R0)
-    np.testing.assert_allclose(np.diag(P)[3:6] - np.diag(P0)[3:6], 0.3**2 * 2.0, rtol=1e-9)
-    t = 2.0  # p = p0 + t v0 + (the motion noise's integral): P_pp = P0_pp + 2 t P0_pv + t^2 P0_vv + q^2 t^3 / 3
-    expected = np.diag(P0[0:3, 0:3] + 2 * t * P0[0:3, 3:6] + t**2 * P0[3:6, 3:6]) + 0.3**2 * t**3 / 3
+    t, qa, qw = 2.0, ROVER["motion_accel_density"], ROVER["motion_turn_density"]
+    np.testing.assert_allclose(np.diag(P)[3:6] - np.diag(P0)[3:6], qa**2 * t, rtol=1e-9)
+    # p = p0 + t v0 + the motion noise's integral: P_pp = P0_pp + 2 t P0_pv + t^2 P0_vv + q^2 t^3 / 3
+    expected = np.diag(P0[0:3, 0:3] + 2 * t * P0[0:3, 3:6] + t**2 * P0[3:6, 3:6]) + qa**2 * t**3 / 3
     np.testing.assert_allclose(np.diag(P)[0:3], expected, rtol=1e-9)
-    np.testing.assert_allclose(np.diag(P)[6:9] - np.diag(P0)[6:9], 0.6**2 * 2.0, rtol=1e-9)
+    np.testing.assert_allclose(np.diag(P)[6:9] - np.diag(P0)[6:9], qw**2 * t, rtol=1e-9)
     plain = LocalReferenceFilter(replace(params, motion_accel_density=None, motion_turn_density=None), 0.0,
                                  accel_at_rest=np.array([0.0, 0.0, 9.81]), gyro_at_rest=np.zeros(3), rest_duration_s=1.0)
     with pytest.raises(FilterException, match="needs FilterParams.motion_accel_density"):
