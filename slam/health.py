@@ -26,8 +26,9 @@ class Health:
     """``state`` since time ``since`` (when the state was entered), with a ``reason``:
     ``"vo lost"`` (VO failures, or no VO results at all), ``"vo rejected"`` (VO deltas
     rejected), ``"no vo"`` (an estimator without VO), ``"uncertain"`` (the covariance bound
-    alone), ``"imu stuck"`` (its samples bridged by a motion model); empty when ok. ``detail``: the last VO failure or rejection reason, or which
-    bound was exceeded."""
+    alone), ``"imu stuck"`` (its samples bridged by a motion model); empty when ok.
+    ``detail``: the last VO failure or rejection reason, which bound was exceeded, or the
+    stuck IMU channels."""
 
     state: HealthState
     reason: str = ""

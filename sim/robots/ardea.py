@@ -94,7 +94,7 @@ class Ardea(Robot):
     default_vo_rig = "down"
     max_speed_mps = 5.0  # chosen: at the position controller's 4 m/s^2 it brakes from 5 m/s within about 3 m
     # measured: the 99th percentile of its true velocity change (1.34 m/s) and attitude change
-    # (43 deg) within one second of flight, at about two sigma (docs/estimation.md)
+    # (43 deg) within one second of flight, at about two sigma (docs/estimation.md's made_stuck)
     motion_accel_density = 0.7
     motion_turn_density = 0.4
     antenna_height_m = 0.3

@@ -115,7 +115,7 @@ class LRU(Robot):
     default_vo_rig = "head"
     max_speed_mps = MAX_WHEEL_RATE_RPS * WHEEL_RADIUS_M  # 2.25 m/s with the wheels at their limit
     # measured: the 99th percentile of its true velocity change (0.35 m/s) and attitude change
-    # (34 deg) within one second, at about two sigma (quickstart-like routes and Etna, docs/estimation.md)
+    # (34 deg) within one second, at about two sigma (docs/estimation.md's made_stuck and Etna)
     motion_accel_density = 0.2
     motion_turn_density = 0.3
     has_wheel_odometry = True
