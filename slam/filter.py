@@ -465,22 +465,33 @@ class LocalReferenceFilter:
         ``Qd = dt Q1 + dt^2 Q2 + dt^3 Q3`` (isotropic densities, so independent of the
         attitude), and the transition matrix ``Phi`` (a buffer the step per sample writes its blocks into) and its column scales."""
         params = self.params
-        sa2, sg2 = params.accel_noise_density**2, params.gyro_noise_density**2
-        I3 = np.eye(3)
-        self._Q1 = np.zeros((CORE, CORE))
-        self._Q1[_V, _V] = sa2 * I3
-        self._Q1[_TH, _TH] = sg2 * I3
-        self._Q1[_BA, _BA] = params.accel_bias_random_walk**2 * I3
-        self._Q1[_BW, _BW] = params.gyro_bias_random_walk**2 * I3
-        self._Q2 = np.zeros((CORE, CORE))
-        self._Q2[_P, _V] = self._Q2[_V, _P] = 0.5 * sa2 * I3
-        self._Q3 = np.zeros((CORE, CORE))
-        self._Q3[_P, _P] = sa2 / 3.0 * I3
+        self._Q1, self._Q2, self._Q3 = self._noise_terms(params.accel_noise_density, params.gyro_noise_density)
+        self._Q_motion = None  # the same for propagate_without_imu, with the robot's motion densities
+        if params.motion_accel_density is not None:
+            self._Q_motion = self._noise_terms(params.motion_accel_density, params.motion_turn_density)
         self._Phi = np.eye(self._base)
         self._phi_p_scale = np.repeat([-0.5, -0.5, 1.0 / 6.0], 3)  # times dt: Phi = I + F dt + F^2 dt^2/2 + F^3 dt^3/6
         self._phi_v_scale = np.repeat([-1.0, -1.0, 0.5], 3)
         self._q_key = math.nan
         self._Qd = np.zeros((CORE, CORE))
+
+    def _noise_terms(self, accel_density: float, turn_density: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``Q1, Q2, Q3`` of ``Qd = dt Q1 + dt^2 Q2 + dt^3 Q3`` for white acceleration and turn-rate
+        noise of these densities (velocity and position integrate the acceleration's), the biases'
+        random walks on top."""
+        params = self.params
+        sa2, sg2 = accel_density**2, turn_density**2
+        I3 = np.eye(3)
+        Q1 = np.zeros((CORE, CORE))
+        Q1[_V, _V] = sa2 * I3
+        Q1[_TH, _TH] = sg2 * I3
+        Q1[_BA, _BA] = params.accel_bias_random_walk**2 * I3
+        Q1[_BW, _BW] = params.gyro_bias_random_walk**2 * I3
+        Q2 = np.zeros((CORE, CORE))
+        Q2[_P, _V] = Q2[_V, _P] = 0.5 * sa2 * I3
+        Q3 = np.zeros((CORE, CORE))
+        Q3[_P, _P] = sa2 / 3.0 * I3
+        return Q1, Q2, Q3
 
     # ------------------------------------------------------------------ read-outs
 
@@ -641,22 +652,13 @@ class LocalReferenceFilter:
         self._f_prev = self._w_prev = None
         if dt <= 0.0:
             return
-        params = self.params
         self._p = self._p + dt * self._v
         d = self._dim
         P = self._Pbuf
         P[_P, :d] += dt * P[_V, :d]  # Phi = I with dp += dt dv, applied to rows, then to columns
         P[:d, _P] += dt * P[:d, _V]
-        sa2, sg2 = params.motion_accel_density**2, params.motion_turn_density**2
-        Q = np.zeros((CORE, CORE))
-        I3 = np.eye(3)
-        Q[_P, _P] = sa2 * dt**3 / 3.0 * I3
-        Q[_P, _V] = Q[_V, _P] = sa2 * dt**2 / 2.0 * I3
-        Q[_V, _V] = sa2 * dt * I3
-        Q[_TH, _TH] = sg2 * dt * I3
-        Q[_BA, _BA] = params.accel_bias_random_walk**2 * dt * I3
-        Q[_BW, _BW] = params.gyro_bias_random_walk**2 * dt * I3
-        P[:CORE, :CORE] += Q  # the consider parameters and clones stand still
+        Q1, Q2, Q3 = self._Q_motion
+        P[:CORE, :CORE] += dt * (Q1 + dt * (Q2 + dt * Q3))  # the consider parameters and clones stand still
         self._t = t
         self._dt_last = dt
 
