@@ -4,7 +4,16 @@ import numpy as np
 import pytest
 
 from sim.evaluation.statistics import StatisticsType, statistics
-from sim.evaluation.trajectory import Trajectory, gravity_aligned, in_start_frame, path_length, trajectory_metrics, truth_since, write_tum
+from sim.evaluation.trajectory import (
+    MIN_DISTANCE_M,
+    Trajectory,
+    gravity_aligned,
+    in_start_frame,
+    path_length,
+    trajectory_metrics,
+    truth_since,
+    write_tum,
+)
 
 
 def circle(n=200, radius=5.0, z=0.0):
@@ -43,6 +52,27 @@ def test_constant_offset_is_the_unaligned_ate_and_vanishes_when_aligned():
     assert m["mean_error_percent_of_distance"] == pytest.approx(50 / (5 * math.pi), rel=1e-3)
     assert np.allclose(errors.position_m, 0.5) and np.array_equal(errors.t, t)
     assert "error_over_time" not in m  # the series travel apart from the metrics
+
+
+def test_no_rates_per_metre_for_a_robot_that_barely_moved():
+    """A robot at rest moves millimetres; its error over that distance is no drift rate
+    (2 mm over 1 cm would read 16 %): no % of distance and no RPE below MIN_DISTANCE_M."""
+    t = np.linspace(0, 8, 100)
+    gt = np.repeat(np.eye(4)[None], len(t), axis=0)
+    gt[:, 0, 3] = 0.01 * t / t[-1]  # 1 cm of settling
+    est = gt.copy()
+    est[:, 1, 3] += 0.002
+    m, _ = trajectory_metrics(Trajectory(t, est), Trajectory(t, gt))
+    assert m["distance_m"] == pytest.approx(0.01) and m["final_error_m"] == pytest.approx(0.002)
+    assert m["final_error_percent_of_distance"] is None and m["mean_error_percent_of_distance"] is None
+    assert m["rpe_per_m"]["status"].startswith("not computed")
+    assert m["ate_aligned_m"]["status"].startswith("not computed")  # on one line: no alignment
+    assert m["ate_m"]["max"] == pytest.approx(0.002)
+    gt[:, 0, 3] = MIN_DISTANCE_M * t / t[-1]  # just far enough
+    est = gt.copy()
+    est[:, 1, 3] += 0.002
+    m, _ = trajectory_metrics(Trajectory(t, est), Trajectory(t, gt))
+    assert m["final_error_percent_of_distance"] == pytest.approx(100 * 0.002 / MIN_DISTANCE_M)
 
 
 def test_yaw_drift_shows_in_yaw_error_and_rpe():

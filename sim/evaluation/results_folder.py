@@ -368,7 +368,9 @@ def plot_filter_errors(robots_metrics: dict[str, Any], plots: dict[str, FilterPl
             continue
         drawn = True
         series = plot.error_over_time
-        label = f"{name}: final {f['final_error_m']:.2f} m ({f['final_error_percent_of_distance']:.2f} % of {f['distance_m']:.0f} m)"
+        pct = f["final_error_percent_of_distance"]
+        share = f"{pct:.2f} % of {f['distance_m']:.0f} m" if pct is not None else f"{f['distance_m']:.2f} m travelled"
+        label = f"{name}: final {f['final_error_m']:.2f} m ({share})"
         ax_p.plot(series.t, series.position_m, label=label)
         ax_y.plot(series.t, series.yaw_deg, label=name)
         nees = f["nees_roll_pitch_velocity"]

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 from evo.core import metrics, sync
+from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 from evo.core.units import Unit
 from scipy.spatial.transform import Rotation, Slerp
@@ -184,6 +185,11 @@ def _evo(trajectory: Trajectory) -> PoseTrajectory3D:
     return PoseTrajectory3D(poses_se3=list(trajectory.T), timestamps=trajectory.t)
 
 
+#: Below this distance travelled, errors per metre (RPE, % of distance) are not computed: a robot at rest still moves
+#: by millimetres (settling, vibration), and 2 mm of error over 1 cm read as 16 %.
+MIN_DISTANCE_M = 1.5
+
+
 def trajectory_metrics(estimate: Trajectory, truth: Trajectory, max_time_diff: float = 0.011) -> tuple[dict[str, float | dict], ErrorOverTime]:
     """Compare an estimated trajectory with ground truth in the same frame: the metrics
     and the errors over time. The truth is interpolated to the estimate's times
@@ -202,16 +208,20 @@ def trajectory_metrics(estimate: Trajectory, truth: Trajectory, max_time_diff: f
     ate = metrics.APE(metrics.PoseRelation.translation_part)
     ate.process_data((ref, est))
     aligned = PoseTrajectory3D(poses_se3=list(est.poses_se3), timestamps=est.timestamps)
-    aligned.align(ref, correct_scale=False)
-    ate_aligned = metrics.APE(metrics.PoseRelation.translation_part)
-    ate_aligned.process_data((ref, aligned))
+    try:  # Umeyama's alignment needs positions that span a plane; a robot on one exact line (or at rest) has none
+        aligned.align(ref, correct_scale=False)
+        ate_aligned = metrics.APE(metrics.PoseRelation.translation_part)
+        ate_aligned.process_data((ref, aligned))
+        ate_aligned_m = statistics(ate_aligned.error, ERROR_STATISTICS)
+    except GeometryException as exc:
+        ate_aligned_m = {"status": f"not computed: {exc}"}
     out: dict[str, float | dict] = {
         "poses": int(ref.num_poses),
         "distance_m": distance,
         "ate_m": statistics(ate.error, ERROR_STATISTICS),
-        "ate_aligned_m": statistics(ate_aligned.error, ERROR_STATISTICS),
+        "ate_aligned_m": ate_aligned_m,
     }
-    if distance > 1.5:
+    if distance >= MIN_DISTANCE_M:
         rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=1.0, delta_unit=Unit.meters, all_pairs=True)
         try:
             rpe.process_data((ref, est))
@@ -225,10 +235,11 @@ def trajectory_metrics(estimate: Trajectory, truth: Trajectory, max_time_diff: f
         [wrap_angle(yaw_of(e[:3, :3]) - yaw_of(r[:3, :3])) for r, e in zip(ref.poses_se3, est.poses_se3)]
     )
     out["final_error_m"] = final
-    out["final_error_percent_of_distance"] = 100.0 * final / distance if distance > 0 else None
+    per_distance = distance >= MIN_DISTANCE_M
+    out["final_error_percent_of_distance"] = 100.0 * final / distance if per_distance else None
     # the thesis's measure (8.3.2, Table 8.9): the mean error over the run against the whole distance; on a route that
     # comes back past its start, the final error alone can be a point where accumulated errors cancel (8.1.1)
-    out["mean_error_percent_of_distance"] = 100.0 * float(np.mean(ate.error)) / distance if distance > 0 else None
+    out["mean_error_percent_of_distance"] = 100.0 * float(np.mean(ate.error)) / distance if per_distance else None
     out["yaw_error_deg"] = {"final": math.degrees(yaw_err[-1]), "max_abs": math.degrees(np.abs(yaw_err).max())}
     return out, ErrorOverTime(ref.timestamps, ate.error, np.degrees(yaw_err))
 
