@@ -639,7 +639,7 @@ class LocalReferenceFilter:
         strapdown step no bias, tilt or consider parameter enters the motion, so the
         visual-odometry deltas that follow calibrate none of them. The next IMU sample
         starts the next interval afresh."""
-        if self.params.motion_accel_density is None:
+        if self._Q_motion is None:
             raise FilterException("propagate_without_imu needs FilterParams.motion_accel_density and motion_turn_density")
         t = float(t)
         if t < self._t:
