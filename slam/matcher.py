@@ -148,6 +148,8 @@ class MatcherParams:
     max_icp_rmse_m: float = 0.1
     min_icp_pairs: int = 300
     roll_pitch_sigma_rad: float = math.radians(0.5)  # 4D ICP: the filter's roll/pitch uncertainty of the origins
+    # memory: the submaps matched last whose CloudGeometry a PairQueue keeps; the others' is rebuilt when paired again
+    geometry_held: int = 8
     seed: int = 0
 
     def __post_init__(self):
@@ -172,6 +174,8 @@ class MatcherParams:
         ]
         if bad:
             raise MatcherException(f"matcher parameters must be finite and >= 0: {', '.join(bad)}")
+        if self.geometry_held < 2:
+            raise MatcherException(f"geometry_held must be at least 2 (the two submaps of a pair), got {self.geometry_held}")
         if self.hough_bin_m <= 0 or not 0 < self.hough_yaw_step_rad <= math.pi:
             raise MatcherException(f"hough_bin_m must be > 0 and hough_yaw_step_rad in (0, pi], got {self.hough_bin_m}, {self.hough_yaw_step_rad}")
 
@@ -189,6 +193,19 @@ class MatcherParams:
 # ----------------------------------------------------------------------------- single submaps
 
 
+@dataclass(frozen=True)
+class CloudGeometry:
+    """A submap's full cloud as matching uses it (6.1.2): float64 points, their normals
+    (+z-oriented) and KD-tree. Most of a prepared submap's memory (56 bytes a point with
+    the tree's index, and its nodes, against 12 for the submap's float32 points), so :class:`PairQueue` holds it only
+    for the submaps matched last and rebuilds it, the same values, when a submap is
+    paired again."""
+
+    cloud: np.ndarray  # (k, 3)
+    normals: np.ndarray  # (k, 3)
+    tree: cKDTree
+
+
 @dataclass
 class Keypoints:
     """What the pairing thread precomputes per submap (6.1.1); features are added by the
@@ -198,12 +215,11 @@ class Keypoints:
     frame_index: int
     points: np.ndarray  # (n, 3) keypoints in the submap frame
     selected_xyz: np.ndarray  # (m, 3) the selected points through the voxel filter, before the known-space filter (bounding boxes)
-    cloud: np.ndarray  # (k, 3) the full point cloud
+    source: np.ndarray  # (k, 3) float32: the submap's full point cloud, the submap's own array (not copied)
     classified: np.ndarray  # (k,) the cloud's points within the obstacle classification's range
     descriptors: np.ndarray | None = None  # (n, 33) unit FPFH
     frames: np.ndarray | None = None  # (n, 3, 3) local reference frames, rows x, y, z
-    normals: np.ndarray | None = None  # (k, 3) of the cloud
-    tree: cKDTree | None = None  # of the cloud
+    geometry: CloudGeometry | None = None  # built by cloud_geometry when matched, released by PairQueue.hold_geometry
 
 
 def surface_variation(cloud: np.ndarray, radius: float) -> np.ndarray:
@@ -246,7 +262,7 @@ def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     rng = np.random.default_rng([params.seed, submap.index, len(points)])
     if off_line_count(points, params.line_distance_m, 100, rng) < params.min_off_line_keypoints:
         return "keypoints line-like"
-    return Keypoints(submap.key, submap.frame_index, points, kp, pts, np.asarray(submap.classified, dtype=bool))
+    return Keypoints(submap.key, submap.frame_index, points, kp, submap.points, np.asarray(submap.classified, dtype=bool))
 
 
 def salient_keypoints(pts: np.ndarray, obstacle: np.ndarray, params: MatcherParams) -> np.ndarray | None:
@@ -291,26 +307,39 @@ def _lrf(cloud: np.ndarray, tree: cKDTree, centers: np.ndarray, radius: float) -
     return frames
 
 
+def cloud_geometry(kp: Keypoints, params: MatcherParams) -> CloudGeometry:
+    """``kp.geometry``, built first if it was never built or was released: normals from
+    the neighbours within ``normal_radius_m`` (at most 40), oriented to +z."""
+    if kp.geometry is None:
+        import open3d as o3d  # here, not at the top: it takes about a second, and the scenario schema imports MatcherParams
+
+        cloud = np.asarray(kp.source, dtype=float)
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.normal_radius_m, max_nn=40))
+        pcd.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
+        kp.geometry = CloudGeometry(cloud, np.array(pcd.normals), cKDTree(cloud))
+    return kp.geometry
+
+
 def compute_features(kp: Keypoints, params: MatcherParams) -> None:
-    """Normals of the cloud, FPFH descriptors and (Hough3D voting) local reference frames
-    of the keypoints (6.1.2 feature generation; computed once per submap, when first needed)."""
+    """FPFH descriptors and (Hough3D voting) local reference frames of the keypoints
+    (6.1.2 feature generation; computed once per submap, when first needed), on the
+    cloud's :func:`cloud_geometry`."""
     if kp.descriptors is not None:
         return
-    import open3d as o3d  # here, not at the top: it takes about a second, and the scenario schema imports MatcherParams
+    import open3d as o3d
 
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kp.cloud))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=params.normal_radius_m, max_nn=40))
-    pcd.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
-    kp.tree = cKDTree(kp.cloud)
-    kp.normals = np.asarray(pcd.normals)
-    _, nearest = kp.tree.query(kp.points)
+    g = cloud_geometry(kp, params)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(g.cloud))
+    pcd.normals = o3d.utility.Vector3dVector(g.normals)
+    _, nearest = g.tree.query(kp.points)
     search = o3d.geometry.KDTreeSearchParamHybrid(radius=params.descriptor_radius_m, max_nn=100)
     # only at the keypoints' cloud points (the same values as over the whole cloud, a fraction of the time)
     at, back = np.unique(nearest, return_inverse=True)
     desc = np.asarray(o3d.pipelines.registration.compute_fpfh_feature(pcd, search, at.tolist()).data).T[back]
     kp.descriptors = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
     if params.voting is Voting.HOUGH3D:
-        kp.frames = _lrf(kp.cloud, kp.tree, kp.points, params.descriptor_radius_m)
+        kp.frames = _lrf(g.cloud, g.tree, kp.points, params.descriptor_radius_m)
 
 
 def correspondences(a: Keypoints, b: Keypoints, params: MatcherParams) -> np.ndarray:
@@ -405,18 +434,19 @@ def _clusters(a: Keypoints, b: Keypoints, corr: np.ndarray, params: MatcherParam
 
 
 def _icp_points(kp: Keypoints, params: MatcherParams) -> np.ndarray | slice:
-    """Index of the points of ``kp.cloud`` the ICP aligns (``params.icp_points``); the
+    """Index of the points of the cloud the ICP aligns (``params.icp_points``); the
     whole cloud as a slice, so that it is not copied."""
     return kp.classified if params.icp_points is MatchPoints.CLASSIFIED else slice(None)
 
 
 def _refine(source: np.ndarray, a: Keypoints, T0: np.ndarray, dof: int, params: MatcherParams) -> IcpResult | None:
     m = _icp_points(a, params)
-    tree = a.tree if params.icp_points is MatchPoints.ALL else None
+    g = cloud_geometry(a, params)
+    tree = g.tree if params.icp_points is MatchPoints.ALL else None
     return icp(
         source,
-        a.cloud[m],
-        a.normals[m],
+        g.cloud[m],
+        g.normals[m],
         T0,
         dof,
         params.icp_max_distance_m,
@@ -474,12 +504,16 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
         res.reason = "no hypothesis"
         return res
     res.inliers = best[1]
-    cloud_b = b.cloud[_icp_points(b, params)]
+    if a.geometry is None:  # released since a's features were computed (PairQueue.hold_geometry)
+        cloud_geometry(a, params)
+        res.timings["geometry"] = time.perf_counter() - t4
+    t5 = time.perf_counter()
+    cloud_b = np.asarray(b.source[_icp_points(b, params)], dtype=float)
     source, _, _ = voxel_filter(cloud_b, np.zeros(len(cloud_b), bool), np.zeros(len(cloud_b)), params.icp_point_resolution_m)
     fit = _refine(source, a, best[0], params.ransac_dof, params)
     if fit is not None and params.mode is MatchMode.FOUR_SIX_D:  # 8.1.2's 4D+6D: the 4D result refined in 6D
         fit = _refine(source, a, fit.T_a_b, 6, params)
-    res.timings["icp"] = time.perf_counter() - t4
+    res.timings["icp"] = time.perf_counter() - t5
     res.icp = fit
     if fit is None:
         res.reason = "icp: too little overlap"
@@ -562,7 +596,9 @@ def evaluate_pair(ka: Keypoints, kb: Keypoints, S_a: np.ndarray, S_b: np.ndarray
 class PairQueue:
     """The pairing thread's state (6.1.1, fig. 6.1): prepared submaps, pairs attempted by
     any robot of the team, and the priority queue of candidates (eq. 6.4, highest
-    first). The queue is rebuilt from the latest graph estimate by :meth:`refresh`."""
+    first). The queue is rebuilt from the latest graph estimate by :meth:`refresh`.
+    Every prepared submap stays pairable for the whole run, but only the
+    ``geometry_held`` matched last keep their :class:`CloudGeometry` (:meth:`hold_geometry`)."""
 
     def __init__(self, params: MatcherParams):
         self.params = params
@@ -571,6 +607,7 @@ class PairQueue:
         self.attempted: set[PairKey] = set()
         self.rejected: dict[str, int] = {}
         self._heap: list[tuple[float, PairKey, Candidate]] = []
+        self._held: dict[SubmapKey, None] = {}  # submaps with a CloudGeometry, matched last at the end
 
     def add(self, submap: Submap) -> Keypoints | str:
         if submap.key in self.prepared or submap.key in self.unsuitable:
@@ -584,6 +621,17 @@ class PairQueue:
 
     def mark_attempted(self, pair: PairKey) -> None:
         self.attempted.add(pair)
+
+    def hold_geometry(self, pair: PairKey) -> None:
+        """After matching ``pair``: its two submaps are the latest matched; release the
+        geometry of those beyond the ``geometry_held`` latest."""
+        for key in pair:
+            self._held.pop(key, None)
+            self._held[key] = None
+        while len(self._held) > self.params.geometry_held:
+            oldest = next(iter(self._held))
+            del self._held[oldest]
+            self.prepared[oldest].geometry = None
 
     def open_pairs(self) -> list[PairKey]:
         keys = sorted(self.prepared)
@@ -620,6 +668,7 @@ class PairQueue:
 
 __all__ = [
     "Candidate",
+    "CloudGeometry",
     "KeypointSelection",
     "Keypoints",
     "MatchMode",
@@ -629,6 +678,7 @@ __all__ = [
     "PairQueue",
     "Prior",
     "Voting",
+    "cloud_geometry",
     "compute_features",
     "correspondences",
     "evaluate_pair",

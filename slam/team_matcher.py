@@ -131,6 +131,7 @@ class TeamMatcher:
         S_a, S_b = self._origins[a], self._origins[b]
         prior = Prior(np.linalg.inv(S_a) @ S_b, cand.sigma_xyz, cand.sigma_yaw)
         result = match_pair(self.queue.prepared[a], self.queue.prepared[b], self.params, prior)
+        self.queue.hold_geometry(cand.pair)
         record = MatchRecord(t, self.frames[a], self.frames[b], prior, result)
         self.records.append(record)
         return record

@@ -253,6 +253,26 @@ def test_rendered_submaps_of_the_same_rocks_match(rendered, mode, keypoints, icp
     np.testing.assert_array_equal(again.T_a_b, res.T_a_b)  # seeded: the same result
 
 
+def test_released_geometry_is_rebuilt_to_the_same_match(rendered):
+    """A queue keeps the cloud geometry of its ``geometry_held`` latest matched submaps
+    only; a submap paired again after its release matches exactly as before."""
+    (A, _), (B, _), (far, _), _ = rendered
+    p = MatcherParams(keypoints="both", geometry_held=2)
+    q = PairQueue(p)
+    ka, kb, kf = (q.add(s) for s in (A, B, far))
+    assert np.shares_memory(ka.source, A.points)  # the submap's cloud, not a copy
+    first = match_pair(ka, kb, p)
+    assert first.success and "geometry" not in first.timings
+    q.hold_geometry((ka.key, kb.key))
+    match_pair(kb, kf, p)
+    q.hold_geometry((kb.key, kf.key))
+    assert ka.geometry is None and kb.geometry is not None and kf.geometry is not None
+    again = match_pair(ka, kb, p)
+    assert "geometry" in again.timings and ka.geometry is not None
+    np.testing.assert_array_equal(again.T_a_b, first.T_a_b)
+    np.testing.assert_array_equal(again.cov, first.cov)
+
+
 @pytest.mark.parametrize("keypoints", ["obstacles", "both"])
 def test_yaw_sweep_voting_matches_the_rendered_submaps(rendered, keypoints):
     """The yaw sweep (no local reference frames) finds the same transform, with and without a prior."""
@@ -412,6 +432,8 @@ def test_params_validation():
         MatcherParams(voting="lrf")
     with pytest.raises(ValueError, match="hough_yaw_step_rad"):
         MatcherParams(hough_yaw_step_rad=0.0)
+    with pytest.raises(ValueError, match="geometry_held"):
+        MatcherParams(geometry_held=1)
 
 
 def _chain(graph, robot: str, target: np.ndarray, frames: int, sigma_m: float) -> None:
