@@ -739,6 +739,10 @@ class MatchingConfig(StrictModel):
     descriptor_radius_m: PositiveFloat = slam_field(
         SlamParam(MatcherParams, "descriptor_radius_m"), description="FPFH radius (and of the known-space check around keypoints)"
     )
+    descriptor_resolution_m: NonNegFloat = slam_field(
+        SlamParam(MatcherParams, "descriptor_resolution_m"),
+        description="> 0: FPFH on the cloud voxel-filtered at this size (normals averaged per voxel); 0: on the full cloud",
+    )
     max_descriptor_distance: float = slam_field(
         SlamParam(MatcherParams, "max_descriptor_distance"), gt=0, le=1, description="L2 between unit FPFH descriptors, scaled to [0, 1]"
     )

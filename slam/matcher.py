@@ -116,6 +116,9 @@ class MatcherParams:
     stereo_error_m: float = 0.12  # right side of eq. 6.3 (thesis: LRU at 4 m); see docs/matching.md
     # features and correspondences
     descriptor_radius_m: float = 0.4
+    # > 0: the descriptors on the cloud voxel-filtered at this size (normals averaged per voxel), so that their
+    # neighbourhood (at most 100 points, docs/matching.md) has the same extent in two submaps of different density
+    descriptor_resolution_m: float = 0.0
     normal_radius_m: float = 0.2  # thesis r = 0.2 m for normals, frames and descriptors
     nearest: int = 3  # most similar features per keypoint, both directions
     max_descriptor_distance: float = 0.25  # L2 between unit descriptors over its range [0, sqrt 2] (thesis 0.5 for CSHOT)
@@ -324,7 +327,8 @@ def cloud_geometry(kp: Keypoints, params: MatcherParams) -> CloudGeometry:
 def compute_features(kp: Keypoints, params: MatcherParams) -> None:
     """FPFH descriptors and (Hough3D voting) local reference frames of the keypoints
     (6.1.2 feature generation; computed once per submap, when first needed), on the
-    cloud's :func:`cloud_geometry`."""
+    cloud's :func:`cloud_geometry`, or with ``descriptor_resolution_m`` on its voxel
+    centroids (each keypoint described at the centroid nearest it)."""
     if kp.descriptors is not None:
         return
     import open3d as o3d
@@ -332,7 +336,12 @@ def compute_features(kp: Keypoints, params: MatcherParams) -> None:
     g = cloud_geometry(kp, params)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(g.cloud))
     pcd.normals = o3d.utility.Vector3dVector(g.normals)
-    _, nearest = g.tree.query(kp.points)
+    if params.descriptor_resolution_m > 0:
+        pcd = pcd.voxel_down_sample(params.descriptor_resolution_m)
+        pcd.normalize_normals()
+        _, nearest = cKDTree(np.asarray(pcd.points)).query(kp.points)
+    else:
+        _, nearest = g.tree.query(kp.points)
     search = o3d.geometry.KDTreeSearchParamHybrid(radius=params.descriptor_radius_m, max_nn=100)
     # only at the keypoints' cloud points (the same values as over the whole cloud, a fraction of the time)
     at, back = np.unique(nearest, return_inverse=True)

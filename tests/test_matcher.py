@@ -18,6 +18,7 @@ from slam.matcher import (
     MatchMode,
     PairQueue,
     Prior,
+    compute_features,
     evaluate_pair,
     match_pair,
     prepare,
@@ -251,6 +252,22 @@ def test_rendered_submaps_of_the_same_rocks_match(rendered, mode, keypoints, icp
     assert t_err < 3 * math.sqrt(3) * sigma[3] and math.radians(yaw_err) < 3 * sigma[2]
     again = match_pair(prepare(A, p), prepare(B, p), p)
     np.testing.assert_array_equal(again.T_a_b, res.T_a_b)  # seeded: the same result
+
+
+def test_descriptors_on_a_thinned_cloud_match_the_rendered_submaps(rendered):
+    """FPFH on the cloud's 5 cm voxel centroids: other descriptors than on the full cloud,
+    the same rocks matched within the bounds of the full-cloud test."""
+    (A, O_a), (B, O_b), _, _ = rendered
+    full = MatcherParams(keypoints="both", voting="yaw_sweep")
+    thin = MatcherParams(keypoints="both", voting="yaw_sweep", descriptor_resolution_m=0.05)
+    ka, kb = prepare(A, thin), prepare(B, thin)
+    res = match_pair(ka, kb, thin)
+    assert res.success, res.reason
+    t_err, yaw_err = errors(res.T_a_b, np.linalg.inv(O_a) @ O_b)
+    assert t_err < 0.1 and yaw_err < 1.0
+    kf = prepare(A, full)
+    compute_features(kf, full)
+    assert kf.descriptors.shape == ka.descriptors.shape and not np.allclose(kf.descriptors, ka.descriptors)
 
 
 def test_released_geometry_is_rebuilt_to_the_same_match(rendered):
