@@ -741,7 +741,7 @@ class MatchingConfig(StrictModel):
     )
     descriptor_resolution_m: NonNegFloat = slam_field(
         SlamParam(MatcherParams, "descriptor_resolution_m"),
-        description="> 0: FPFH on the cloud voxel-filtered at this size (normals averaged per voxel); 0: on the full cloud",
+        description="> 0: FPFH on the cloud voxel-filtered at this size (voxel-averaged normals), its 100 neighbours reaching further; 0: full cloud",
     )
     max_descriptor_distance: float = slam_field(
         SlamParam(MatcherParams, "max_descriptor_distance"), gt=0, le=1, description="L2 between unit FPFH descriptors, scaled to [0, 1]"

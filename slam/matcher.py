@@ -116,8 +116,9 @@ class MatcherParams:
     stereo_error_m: float = 0.12  # right side of eq. 6.3 (thesis: LRU at 4 m); see docs/matching.md
     # features and correspondences
     descriptor_radius_m: float = 0.4
-    # > 0: the descriptors on the cloud voxel-filtered at this size (normals averaged per voxel), so that their
-    # neighbourhood (at most 100 points, docs/matching.md) has the same extent in two submaps of different density
+    # > 0: the descriptors on the cloud voxel-filtered at this size (normals averaged per voxel). FPFH takes at most
+    # 100 neighbours within descriptor_radius_m; on the submaps' 5 cm clouds they reach about 0.17 m, on a 0.1 m
+    # thinning about 0.4 m (docs/matching.md, "Descriptors on a thinned cloud")
     descriptor_resolution_m: float = 0.0
     normal_radius_m: float = 0.2  # thesis r = 0.2 m for normals, frames and descriptors
     nearest: int = 3  # most similar features per keypoint, both directions
