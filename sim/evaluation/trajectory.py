@@ -221,7 +221,8 @@ def trajectory_metrics(estimate: Trajectory, truth: Trajectory, max_time_diff: f
         "ate_m": statistics(ate.error, ERROR_STATISTICS),
         "ate_aligned_m": ate_aligned_m,
     }
-    if distance >= MIN_DISTANCE_M:
+    per_distance = distance >= MIN_DISTANCE_M
+    if per_distance:
         rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=1.0, delta_unit=Unit.meters, all_pairs=True)
         try:
             rpe.process_data((ref, est))
@@ -235,7 +236,6 @@ def trajectory_metrics(estimate: Trajectory, truth: Trajectory, max_time_diff: f
         [wrap_angle(yaw_of(e[:3, :3]) - yaw_of(r[:3, :3])) for r, e in zip(ref.poses_se3, est.poses_se3)]
     )
     out["final_error_m"] = final
-    per_distance = distance >= MIN_DISTANCE_M
     out["final_error_percent_of_distance"] = 100.0 * final / distance if per_distance else None
     # the thesis's measure (8.3.2, Table 8.9): the mean error over the run against the whole distance; on a route that
     # comes back past its start, the final error alone can be a point where accumulated errors cancel (8.1.1)
