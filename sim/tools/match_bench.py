@@ -5,7 +5,8 @@ submaps built from rendered stereo along crossing paths through a scene of
 against its true transform.
 
     python -m sim.tools.match_bench [--paths N] [--scene rocky rough] [--mode 4d 6d 4d+6d]
-        [--keypoints obstacles geometry both] [--out results/match_bench.json]
+        [--keypoints obstacles geometry both] [--voting hough3d yaw_sweep]
+        [--descriptor-resolution 0 0.05] [--out results/match_bench.json]
 
 Thesis (8.1): keypoints and features 0.39 s per map, feature matching 3.07 s per pair,
 Hough voting 0.02 s, ICP 2.38 s. Stage names here: ``keypoints`` (suitability and
@@ -17,6 +18,7 @@ submap, computed on first use), and per pair ``correspondences``, ``hough``, ``r
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import time
@@ -27,7 +29,7 @@ import numpy as np
 
 from sim.tools.rocky_scene import SCENES, RockyScene
 from slam.lie import yaw_of
-from slam.matcher import KeypointSelection, MatcherParams, MatchMode, match_pair, prepare
+from slam.matcher import KeypointSelection, MatcherParams, MatchMode, Voting, match_pair, prepare
 from slam.submap import Submap
 
 # Straight drives through the 20 m rocky scene: (start, end) xy in metres.
@@ -95,13 +97,29 @@ def evaluate(built: list[tuple[Submap, np.ndarray]], params: MatcherParams) -> d
     }
 
 
-def run(paths: int, scenes: list[str], modes: list[str], keypoints: list[str]) -> dict:
+def run(
+    paths: int,
+    scenes: list[str],
+    modes: list[str],
+    keypoints: list[str],
+    votings: list[str] | None = None,
+    descriptor_resolutions: list[float] | None = None,
+) -> dict:
+    """Every combination, keyed ``"scene keypoints mode"`` and, where more than the default
+    is asked for, the voting and the descriptors' cloud resolution."""
+    votings = votings or [MatcherParams.voting.value]
+    resolutions = descriptor_resolutions or [MatcherParams.descriptor_resolution_m]
     out = {}
     for scene in scenes:
         built = build(paths, scene)
-        for kp in keypoints:
-            for mode in modes:
-                out[f"{scene} {kp} {mode}"] = evaluate(built, MatcherParams(mode=mode, keypoints=kp))
+        for kp, mode, voting, res in itertools.product(keypoints, modes, votings, resolutions):
+            name = f"{scene} {kp} {mode}"
+            if len(votings) > 1 or voting != MatcherParams.voting.value:
+                name += f" {voting}"
+            if len(resolutions) > 1 or res != MatcherParams.descriptor_resolution_m:
+                name += f" descriptors@{res:g}m"
+            params = MatcherParams(mode=mode, keypoints=kp, voting=voting, descriptor_resolution_m=res)
+            out[name] = evaluate(built, params)
     return out
 
 
@@ -111,11 +129,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--scene", nargs="+", choices=sorted(SCENES), default=["rocky"], help="terrains of sim.tools.rocky_scene")
     ap.add_argument("--mode", nargs="+", choices=[m.value for m in MatchMode], default=[m.value for m in MatchMode])
     ap.add_argument("--keypoints", nargs="+", choices=[k.value for k in KeypointSelection], default=[KeypointSelection.OBSTACLES.value])
+    ap.add_argument("--voting", nargs="+", choices=[v.value for v in Voting], default=None)
+    ap.add_argument(
+        "--descriptor-resolution", nargs="+", type=float, default=None, metavar="M",
+        help="slam.matching.descriptor_resolution_m values (0: FPFH on the full cloud)",
+    )
     ap.add_argument("--out", type=Path, default=Path("results/match_bench.json"))
     args = ap.parse_args(argv)
     if not 2 <= args.paths <= len(PATHS):
         ap.error(f"--paths must be between 2 and {len(PATHS)}")
-    result = run(args.paths, args.scene, args.mode, args.keypoints)
+    if args.descriptor_resolution and min(args.descriptor_resolution) < 0:
+        ap.error("--descriptor-resolution must be >= 0")
+    result = run(args.paths, args.scene, args.mode, args.keypoints, args.voting, args.descriptor_resolution)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     for name, r in result.items():
