@@ -741,7 +741,10 @@ class MatchingConfig(StrictModel):
     )
     descriptor_resolution_m: NonNegFloat = slam_field(
         SlamParam(MatcherParams, "descriptor_resolution_m"),
-        description="> 0: FPFH on the cloud voxel-filtered at this size (voxel-averaged normals), its 100 neighbours reaching further; 0: full cloud",
+        description=(
+            "> 0: FPFH on the cloud voxel-filtered at this size (voxel-averaged normals; "
+            "at 0.1 m its 100 neighbours reach the 0.4 m radius); 0: full cloud"
+        ),
     )
     max_descriptor_distance: float = slam_field(
         SlamParam(MatcherParams, "max_descriptor_distance"), gt=0, le=1, description="L2 between unit FPFH descriptors, scaled to [0, 1]"

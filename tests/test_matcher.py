@@ -255,7 +255,7 @@ def test_rendered_submaps_of_the_same_rocks_match(rendered, mode, keypoints, icp
 
 
 def test_descriptors_on_a_thinned_cloud_match_the_rendered_submaps(rendered):
-    """FPFH on the cloud's 5 cm voxel centroids: other descriptors than on the full cloud,
+    """FPFH on the cloud's 0.05 m voxel centroids: other descriptors than on the full cloud,
     the same rocks matched within the bounds of the full-cloud test."""
     (A, O_a), (B, O_b), _, _ = rendered
     full = MatcherParams(keypoints="both", voting="yaw_sweep")
