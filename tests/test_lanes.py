@@ -18,6 +18,20 @@ def test_job_result_appears_after_modelled_cost():
     assert seen == [(42, pytest.approx(0.25))]
 
 
+def test_a_job_holds_its_core_for_the_stages_its_result_says_it_ran():
+    """A matching attempt that reached the ICP costs matching plus ICP, one that stopped
+    before it matching alone (thesis 8.4); measured, the wall time already holds both."""
+    env = simpy.Environment()
+    lane = make_lane(env, stages={"matching_s": 3.0, "icp_s": 2.0})
+    done = []
+    icp = lambda result: ("icp",) if result == "refined" else ()  # noqa: E731
+    lane.submit("matching", lambda: "refined", lambda r, t: done.append((r, t)), extra_stages=icp)
+    lane.submit("matching", lambda: "no hypothesis", lambda r, t: done.append((r, t)), extra_stages=icp)
+    env.run()
+    assert done == [("refined", pytest.approx(5.0)), ("no hypothesis", pytest.approx(8.0))]
+    assert ComputeModel(ComputeConfig(model="measured", measured_scale=2.0)).cost("matching", 0.5, ("icp",)) == 1.0
+
+
 def test_jobs_queue_on_one_core_and_priorities_order_them():
     env = simpy.Environment()
     lane = make_lane(env, stages={"stereo_s": 1.0})

@@ -48,9 +48,15 @@ class ComputeModel:
     def __init__(self, cfg: ComputeConfig):
         self.cfg = cfg
 
-    def cost(self, stage: str, wall_s: float) -> float:
+    def cost(self, stage: str, wall_s: float, extra: tuple[str, ...] = ()) -> float:
+        """Compute time of a ``stage`` job whose wall time was ``wall_s``; ``extra`` are the
+        further stages the job's own code ran (modelled: their costs are added; measured:
+        ``wall_s`` already holds them)."""
         if self.cfg.model == "measured":
             return wall_s * self.cfg.measured_scale
+        return sum(self._modelled(s) for s in (stage, *extra))
+
+    def _modelled(self, stage: str) -> float:
         try:
             return getattr(self.cfg.stages, f"{stage}_s")
         except AttributeError:
@@ -99,7 +105,9 @@ class Lane:
     A job's ``work`` runs when the job starts. If it returns a :class:`Future` (work handed
     to the image pipeline's worker thread, ``sim/run/pipeline.py``), the lane takes the
     result through ``resolve`` when the job finishes in simulated time, before ``on_done``;
-    with ``wait=False`` it hands ``on_done`` the future itself (a result only evaluation reads)."""
+    with ``wait=False`` it hands ``on_done`` the future itself (a result only evaluation reads).
+    ``extra_stages`` names, from the result, the stages the work ran beyond its own, whose
+    modelled costs the job also holds its device for (a matching attempt that reached the ICP)."""
 
     def __init__(
         self,
@@ -150,6 +158,7 @@ class Lane:
         priority: Priority = Priority.REALTIME,
         device: str = Device.CPU,
         wait: bool = True,
+        extra_stages: Callable[[Any], tuple[str, ...]] | None = None,
     ) -> simpy.Process | None:
         if self.halted:
             return None
@@ -167,7 +176,7 @@ class Lane:
         waits = not request.triggered
         queue.waiting += waits
         self._active[priority] += 1
-        process = self.env.process(self._run(resource, request, waits, queue, record, work, on_done, priority, wait))
+        process = self.env.process(self._run(resource, request, waits, queue, record, work, on_done, priority, wait, extra_stages))
         request.proc = process  # made outside the job's process: preemption must interrupt the job
         return process
 
@@ -189,7 +198,9 @@ class Lane:
             except simpy.Interrupt:
                 request = self._request(resource, priority)
 
-    def _run(self, resource, request, waits: bool, queue: _StageQueue, record: JobRecord, work, on_done, priority: Priority, wait: bool):
+    def _run(
+        self, resource, request, waits: bool, queue: _StageQueue, record: JobRecord, work, on_done, priority: Priority, wait: bool, extra_stages
+    ):
         try:
             request = yield from self._acquire(resource, request, priority)
             queue.waiting -= waits
@@ -200,7 +211,8 @@ class Lane:
             result = work()
             record.wall_s = time.perf_counter() - t0
             self.wall_s += record.wall_s
-            record.compute_s = self.compute.cost(record.stage, record.wall_s) * self.slowdown
+            extra = extra_stages(result) if extra_stages is not None else ()
+            record.compute_s = self.compute.cost(record.stage, record.wall_s, extra) * self.slowdown
             left = record.compute_s
             while True:
                 start = self.env.now

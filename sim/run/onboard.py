@@ -54,6 +54,7 @@ from slam.obstacles import Classification, ObstacleParams
 from slam.rest import RestParams
 from slam.stereo import StereoCalibration, depth_error, remove_disparity_offset
 from slam.submap import SubmapParams
+from slam.team_matcher import MatchRecord
 from slam.vo import StereoVO, VoParams, VoResult
 
 TRUTH_MATCH_S = 1e-6  # s: a truth sample is at the filter's time within this
@@ -105,6 +106,12 @@ def matcher_params(cfg: SlamConfig, calib: StereoCalibration, seed: int) -> Matc
     if not (m.enabled and cfg.mapping.enabled and cfg.graph.enabled):
         return None
     return MatcherParams(**slam_kwargs(MatcherParams, m), stereo_error_m=float(depth_error(m.stereo_error_depth_m, calib)), seed=seed)
+
+
+def _icp_stage(out: tuple[list, MatchRecord]) -> tuple[str, ...]:
+    """A matching attempt's ICP (thesis 8.4: "only computed for almost certain matches")
+    costs its own stage, on top of the feature matching and voting every attempt costs."""
+    return ("icp",) if "icp" in out[1].result.timings else ()
 
 
 def agent_params(cfg: SlamConfig, matching: MatcherParams | None = None, marker_tables: dict | None = None) -> AgentParams:
@@ -249,7 +256,11 @@ class OnboardStack:
             return
         cand = matcher.next_candidate()
         self.lane.submit(
-            "matching", work=lambda: self.agent.attempt_match(cand, self.lane.env.now)[0], on_done=self._matching_done, priority=Priority.BACKGROUND
+            "matching",
+            work=lambda: self.agent.attempt_match(cand, self.lane.env.now),
+            on_done=lambda out, t: self._matching_done(out[0], t),
+            priority=Priority.BACKGROUND,
+            extra_stages=_icp_stage,
         )
 
     def _matching_done(self, out, _t: float) -> None:
