@@ -36,8 +36,8 @@ def test_pixels_that_saw_a_robot_are_left_out_wherever_stereo_placed_them():
     assert by_measured.pixels_on_robots == 0  # placed 1.2 m ahead: 0.8 m from the robot's centre
 
     reach = ROBOT[1] + MapQualityParams().robot_margin_m
-    true_xy = (depth_to_points(true_depth, CAL).reshape(-1, 3) @ T_WORLD_CAM[:3, :3].T + T_WORLD_CAM[:3, 3])[:, :2]
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"):  # the sky's infinite true depths become NaN points
+        true_xy = (depth_to_points(true_depth, CAL).reshape(-1, 3) @ T_WORLD_CAM[:3, :3].T + T_WORLD_CAM[:3, 3])[:, :2]
         on = (np.hypot(*(true_xy - ROBOT[0]).T) < reach).reshape(depth.shape) & np.isfinite(depth)
     assert 0 < on.sum() < np.isfinite(depth).sum()  # the robot's face, not the whole view nor the sky
     assert by_truth.pixels_on_robots == on.sum()
