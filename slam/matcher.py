@@ -404,6 +404,12 @@ class MatchResult:
     def success(self) -> bool:
         return self.T_a_b is not None
 
+    @property
+    def reached_icp(self) -> bool:
+        """Whether a hypothesis passed the checks and was refined (6.1.2): the attempts the
+        thesis's ICP time applies to (8.4)."""
+        return "icp" in self.timings
+
 
 def _within(T: np.ndarray, prior: Prior | None, bound: float, sigma_xyz: np.ndarray | float, sigma_yaw: float) -> bool:
     """The plausibility check of 6.1.2: ``T``'s translation within ``bound`` sigmas of the graph's. Both are

@@ -243,6 +243,7 @@ def test_rendered_submaps_of_the_same_rocks_match(rendered, mode, keypoints, icp
     ka, kb = prepare(A, p), prepare(B, p)
     res = match_pair(ka, kb, p)
     assert res.success, res.reason
+    assert res.reached_icp
     T_true = np.linalg.inv(O_a) @ O_b
     t_err, yaw_err = errors(res.T_a_b, T_true)
     assert t_err < 0.1 and yaw_err < 1.0
@@ -281,7 +282,8 @@ def test_released_geometry_is_rebuilt_to_the_same_match(rendered):
     first = match_pair(ka, kb, p)
     assert first.success and "geometry" not in first.timings
     q.hold_geometry((ka.key, kb.key))
-    match_pair(kb, kf, p)
+    elsewhere = match_pair(kb, kf, p)
+    assert elsewhere.reason == "no hypothesis" and not elsewhere.reached_icp  # no shared rock: the ICP's time is not spent
     q.hold_geometry((kb.key, kf.key))
     assert ka.geometry is None and kb.geometry is not None and kf.geometry is not None
     again = match_pair(ka, kb, p)

@@ -112,7 +112,7 @@ def _icp_stage(out: tuple[list, MatchRecord]) -> tuple[str, ...]:
     """A matching attempt's ICP (thesis 8.4: "only computed for almost certain matches")
     costs its own stage, on top of the feature matching and voting every attempt costs; the
     4D+6D mode's second refinement, started from the first's result, is charged with it."""
-    return ("icp",) if "icp" in out[1].result.timings else ()
+    return ("icp",) if out[1].result.reached_icp else ()
 
 
 def agent_params(cfg: SlamConfig, matching: MatcherParams | None = None, marker_tables: dict | None = None) -> AgentParams:
