@@ -406,8 +406,8 @@ class MatchResult:
 
     @property
     def reached_icp(self) -> bool:
-        """Whether a hypothesis passed the checks and was refined (6.1.2): the attempts the
-        thesis's ICP time applies to (8.4)."""
+        """Whether a hypothesis passed the checks and the ICP ran on it, whatever its outcome
+        (6.1.2): the attempts the thesis's ICP time applies to (8.4)."""
         return "icp" in self.timings
 
 
