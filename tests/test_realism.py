@@ -189,6 +189,20 @@ def test_drawn_lens_distortion_has_the_configured_rms_and_leaves_the_other_error
     assert with_it.pan_offset_rad == without.pan_offset_rad
 
 
+def test_drawn_time_offset_has_the_configured_spread_and_leaves_the_other_errors():
+    rig = SimpleNamespace(stereo_rigs=[RIG], pan_tilt_head=True)
+    base = dict(stereo_rotation_deg=0.04, baseline_error=0.001, focal_error=0.002, camera_imu_rotation_deg=0.2,
+                camera_imu_translation_m=0.005, pan_tilt_offset_deg=0.1, lens_distortion_mrad=0.2)
+    rng = np.random.default_rng(4)
+    offsets = np.array([draw_calibration_errors(rig, CalibrationRealism(**base, camera_imu_time_offset_ms=3.0), rng).time_offset_s for _ in range(400)])
+    assert offsets.std() == pytest.approx(3e-3, rel=0.15) and abs(offsets.mean()) < 0.5e-3
+    with_it = draw_calibration_errors(rig, CalibrationRealism(**base, camera_imu_time_offset_ms=3.0), np.random.default_rng(9))
+    without = draw_calibration_errors(rig, CalibrationRealism(**base, camera_imu_time_offset_ms=0.0), np.random.default_rng(9))
+    assert without.time_offset_s == 0.0 and with_it.time_offset_s != 0.0
+    np.testing.assert_array_equal(with_it.rigs["head"].distortion, without.rigs["head"].distortion)
+    assert with_it.pan_offset_rad == without.pan_offset_rad
+
+
 def test_believed_camera_transform_carries_extrinsic_and_encoder_errors():
     T_true = se3(so3_exp([0.3, -0.2, 1.0]), [0.2, 0.0, 1.1])
     none = CalibrationError({"head": RigError()})

@@ -24,6 +24,7 @@ from sim.world.sensors import (
     StereoRenderer,
     WheelOdometryModel,
     body_velocity_from_wheels,
+    camera_pose_ahead,
 )
 
 # --------------------------------------------------------------------------- IMU
@@ -115,13 +116,14 @@ def test_imu_is_reproducible_and_draws_initial_biases():
 RIG = StereoRig("head", "left", "right", 0.09, 50.6, 320, 240)
 
 
-def camera_scene(body_pos, body_euler, extra: str = "", extent: float = 40.0, rig: StereoRig = RIG, right_x=None) -> tuple:
-    """A textured plane at z = 0, a stereo pair on a body; MuJoCo cameras look along the
-    body's -z (an unrotated body looks straight down)."""
+def camera_scene(body_pos, body_euler, extra: str = "", extent: float = 40.0, rig: StereoRig = RIG, right_x=None, free: bool = False) -> tuple:
+    """A textured plane at z = 0, a stereo pair on a body (``free``: on a free joint, without
+    gravity); MuJoCo cameras look along the body's -z (an unrotated body looks straight down)."""
     right_x = rig.baseline_m if right_x is None else right_x
     xml = f"""
     <mujoco>
       <statistic extent="{extent}"/>
+      <option gravity="0 0 0"/>
       <asset>
         <texture name="g" type="2d" builtin="checker" width="512" height="512" rgb1=".2 .2 .2" rgb2=".8 .8 .8"/>
         <material name="g" texture="g" texrepeat="40 40"/>
@@ -132,6 +134,7 @@ def camera_scene(body_pos, body_euler, extra: str = "", extent: float = 40.0, ri
         <geom type="plane" size="30 30 1" material="g"/>
         {extra}
         <body pos="{body_pos}" euler="{body_euler}">
+          {'<freejoint/><inertial pos="0 0 0" mass="1" diaginertia="0.01 0.01 0.01"/>' if free else ""}
           <camera name="left" pos="0 0 0" fovy="{rig.vfov_deg!r}"/>
           <camera name="right" pos="{right_x} 0 0" fovy="{rig.vfov_deg!r}"/>
         </body>
@@ -261,6 +264,32 @@ def test_a_snapshot_draws_the_state_it_was_taken_at_in_another_thread():
     for image in ("left", "right", "depth"):
         np.testing.assert_array_equal(getattr(frame, image), getattr(before, image))
     assert not np.array_equal(moved.left, before.left)
+
+
+def test_a_time_offset_draws_the_pair_from_where_the_cameras_are_that_much_later():
+    """A camera-IMU time offset (sim/world/calibration_errors.py): the pair snapshot now with
+    ``time_offset_s`` is the pair the state that much later shows, for a rig moving and
+    turning fast (2 m/s, 170 deg/s: 4 cm and 3.4 deg in 20 ms), the headlight with them."""
+    model, data = camera_scene("0 0 2", "30 0 0", free=True)
+    data.qvel[:] = [1.5, -1.0, 0.8, 1.0, -2.0, 2.0]  # world linear, body angular velocity
+    mujoco.mj_forward(model, data)
+    dt = 0.02
+    later = mujoco.MjData(model)
+    later.qpos[:] = data.qpos
+    mujoco.mj_integratePos(model, later.qpos, data.qvel, dt)  # constant velocity: exact for a free body
+    mujoco.mj_forward(model, later)
+    cam = model.camera("left").id  # at the body's origin, which moves at constant velocity
+    position, R = camera_pose_ahead(model, data, cam, dt)
+    np.testing.assert_allclose(position, later.cam_xpos[cam], atol=1e-9)
+    np.testing.assert_allclose(R, later.cam_xmat[cam].reshape(3, 3), atol=1e-9)
+    with StereoRenderer(model, RIG, CameraConfig(), time_offset_s=dt) as ahead, StereoRenderer(model, RIG, CameraConfig()) as plain:
+        shifted = ahead.render(data, with_depth=True)
+        now, truth = plain.render(data, with_depth=True), plain.render(later, with_depth=True)
+    for image in ("left", "right"):
+        error = np.abs(getattr(shifted, image).astype(int) - getattr(truth, image)).mean()
+        assert (getattr(shifted, image) != getattr(truth, image)).mean() < 0.005, (image, error)  # float rounding flips a few edge pixels
+        assert np.abs(getattr(now, image).astype(int) - getattr(truth, image)).mean() > 100 * max(error, 0.1)
+    np.testing.assert_allclose(shifted.depth, truth.depth, rtol=1e-3)
 
 
 def test_renderer_rejects_cameras_that_do_not_match_the_rig():

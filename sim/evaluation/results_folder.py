@@ -209,8 +209,13 @@ def _calibration(errors: CalibrationError, rigs) -> dict[str, Any]:
     """The calibration errors drawn for a robot (sim/world/calibration_errors.py), per rig:
     the right camera's rotation as disparity offset coefficients (px), baseline and focal
     scales, and the lens distortion's RMS over the image per camera and of the disparity
-    error it causes (left less right shift along x, px); the pan-tilt encoders' offsets."""
-    out: dict[str, Any] = {"pan_offset_deg": float(np.degrees(errors.pan_offset_rad)), "tilt_offset_deg": float(np.degrees(errors.tilt_offset_rad))}
+    error it causes (left less right shift along x, px); the pan-tilt encoders' offsets and
+    the camera-IMU time offset (ms, the pairs taken after their stamps)."""
+    out: dict[str, Any] = {
+        "pan_offset_deg": float(np.degrees(errors.pan_offset_rad)),
+        "tilt_offset_deg": float(np.degrees(errors.tilt_offset_rad)),
+        "camera_imu_time_offset_ms": errors.time_offset_s * 1e3,
+    }
     for rig in rigs:
         e = errors.rigs[rig.name]
         lens = e.lens_distortions(rig)

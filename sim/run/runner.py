@@ -60,6 +60,7 @@ from sim.world.sensors import (
     StereoRenderer,
     WheelErrors,
     WheelOdometryModel,
+    camera_pose_ahead,
 )
 from sim.world.terrain import Terrain, generate_terrain
 from slam.agent import TeamMarker
@@ -355,7 +356,7 @@ class Run:
             wheel_errors = WheelErrors.draw(realism.wheels, self.streams.rng("wheel_errors", robot.name))
             odometry = WheelOdometryModel(cfg.wheel_odometry, self.streams.rng("wheel_odometry", robot.name), wheel_errors)
         calib = self.calibration_errors[robot.name]
-        renderers = [StereoRenderer(self.world.model, rig, cfg.camera, calib.rigs[rig.name]) for rig in robot.stereo_rigs]
+        renderers = [StereoRenderer(self.world.model, rig, cfg.camera, calib.rigs[rig.name], calib.time_offset_s) for rig in robot.stereo_rigs]
         imaging = []
         for rig in robot.stereo_rigs:
             params = imaging_params(realism.camera, self.streams.rng("imaging", robot.name, rig.name))
@@ -703,7 +704,7 @@ class Run:
             if onboard is not None:
                 if for_vo:
                     onboard.capture(frame, now, T_body_cam)
-                    T_world_cam = self._camera_pose(rig.left_camera)
+                    T_world_cam = self._camera_pose(rig.left_camera, self.calibration_errors[runtime.robot.name].time_offset_s)
                     onboard.vo_scores.capture(frame, T_world_cam)
                     if runtime.image_cells is not None:
                         runtime.capture_truth[frame] = (T_world_cam, self._others(runtime.robot), pair)
@@ -748,12 +749,13 @@ class Run:
         mujoco.mj_objectVelocity(self.world.model, self.world.data, mujoco.mjtObj.mjOBJ_CAMERA, cam, out, 1)
         return MUJOCO_TO_OPENCV @ out[:3]
 
-    def _camera_pose(self, camera: str) -> np.ndarray:
-        """True T_world_cam of a camera (OpenCV axes)."""
-        data, cam = self.world.data, self.world.model.camera(camera).id
+    def _camera_pose(self, camera: str, ahead_s: float = 0.0) -> np.ndarray:
+        """True T_world_cam of a camera (OpenCV axes), ``ahead_s`` from now (a pair's true
+        pose under a camera-IMU time offset: :func:`sim.world.sensors.camera_pose_ahead`)."""
+        position, R = camera_pose_ahead(self.world.model, self.world.data, self.world.model.camera(camera).id, ahead_s)
         T = np.eye(4)
-        T[:3, :3] = data.cam_xmat[cam].reshape(3, 3) @ MUJOCO_TO_OPENCV
-        T[:3, 3] = data.cam_xpos[cam]
+        T[:3, :3] = R @ MUJOCO_TO_OPENCV
+        T[:3, 3] = position
         return T
 
     def _markers_in_view(self, robot: Robot, rig: StereoRig) -> bool:

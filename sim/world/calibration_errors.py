@@ -31,9 +31,12 @@ where they act:
   rotation is taken about the body origin; the LRU's mast stands 0.18 m from it, so the
   camera position error this neglects is 0.3 mm per 0.1 deg of offset.
 
-A camera-IMU time offset is not modelled: the cameras are hardware-triggered with the
-IMU (thesis 7.1), and the run samples sensors on the 5 ms control tick, coarser than the
-offsets a synchronised rig has.
+- **a camera-IMU time offset** acts on the images' timing: the stack stamps each pair with
+  its trigger time, the cameras take it ``time_offset_s`` later (the thesis's rigs are
+  hardware-synchronised left to right, 7.2; how their images are stamped against the
+  IMU's clock it does not say). :class:`sim.world.sensors.StereoRenderer` draws each pair
+  from the cameras' poses that long after the trigger, extrapolated at their velocity;
+  one offset per robot, the same for all its rigs.
 """
 
 from __future__ import annotations
@@ -129,11 +132,13 @@ class LensDistortion:
 
 @dataclass(frozen=True)
 class CalibrationError:
-    """One robot's calibration errors: per rig, and its pan-tilt encoder offsets (rad)."""
+    """One robot's calibration errors: per rig, its pan-tilt encoder offsets (rad) and the
+    time its images are taken after their stamps (s)."""
 
     rigs: dict[str, RigError]
     pan_offset_rad: float = 0.0
     tilt_offset_rad: float = 0.0
+    time_offset_s: float = 0.0
 
 
 def _normalised_grid(rig: StereoRig, focal_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -179,7 +184,10 @@ def draw_calibration_errors(robot: Robot, cfg: CalibrationRealism, rng: np.rando
         for rig in robot.stereo_rigs:
             stds = distortion_term_stds(rig, cfg.lens_distortion_mrad * 1e-3)
             rigs[rig.name] = replace(rigs[rig.name], distortion=rng.standard_normal((2, 4)) * stds)
-    return CalibrationError(rigs, float(pan), float(tilt))
+    time_offset = 0.0
+    if cfg.camera_imu_time_offset_ms:  # after the lenses, for the same reason
+        time_offset = float(rng.standard_normal()) * cfg.camera_imu_time_offset_ms * 1e-3
+    return CalibrationError(rigs, float(pan), float(tilt), time_offset)
 
 
 def perturb_cameras(model: mujoco.MjModel, robot: Robot, errors: CalibrationError) -> None:

@@ -44,6 +44,7 @@ from sim.scenario import CameraConfig, ImuRealism, WheelOdometryConfig, WheelRea
 from sim.world.calibration_errors import RigError
 from sim.world.camera_rig import MUJOCO_TO_OPENCV, StereoRig
 from sim.world.terrain_tiles import TerrainTiles
+from slam.lie import so3_exp
 
 __all__ = [
     "IMU_PRESETS",
@@ -58,6 +59,7 @@ __all__ = [
     "WheelLike",
     "WheelOdometryModel",
     "body_velocity_from_wheels",
+    "camera_pose_ahead",
 ]
 
 #: MuJoCo draws the skybox at 0.5..1 x the far plane, with depth: rendering with the far
@@ -354,6 +356,23 @@ class _RenderTarget:
 _Eyes = tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
 
 
+def camera_pose_ahead(model: mujoco.MjModel, data: mujoco.MjData, camera_id: int, ahead_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The MuJoCo camera's world position and orientation matrix ``ahead_s`` after the state
+    in ``data``, extrapolated at its present linear and angular velocity (a camera-IMU time
+    offset of a few milliseconds; ``data``'s velocities must be current, as after ``mj_step``)."""
+    position, R = data.cam_xpos[camera_id].copy(), data.cam_xmat[camera_id].reshape(3, 3).copy()
+    if ahead_s == 0.0:
+        return position, R
+    velocity = np.zeros(6)  # world-aligned [angular, linear] at the camera's origin
+    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_CAMERA, camera_id, velocity, 0)
+    return position + velocity[3:] * ahead_s, so3_exp(velocity[:3] * ahead_s) @ R
+
+
+def _eyes_moved(eyes: _Eyes, origin: np.ndarray, position: np.ndarray, turn: np.ndarray) -> _Eyes:
+    """Eyes of a rig whose camera at ``origin`` moved to ``position`` and turned by ``turn`` (world frame)."""
+    return tuple((position + turn @ (pos - origin), turn @ forward, turn @ up) for pos, forward, up in eyes)
+
+
 def _eyes(scene: mujoco.MjvScene) -> _Eyes:
     return tuple((c.pos.copy(), c.forward.copy(), c.up.copy()) for c in scene.camera)
 
@@ -397,6 +416,9 @@ class StereoRenderer:
     settings), and the far plane to ``SKY_FAR_FACTOR * camera.zfar_m``; ground-truth
     depth beyond ``camera.zfar_m`` is reported as ``inf`` (the skybox has depth in
     MuJoCo, at 0.5..1 x the far plane, and must not pass for terrain).
+    ``time_offset_s`` is the camera-IMU time offset (:mod:`sim.world.calibration_errors`):
+    each pair shows the world from where its cameras are that long after the state it is
+    snapshot at (:func:`camera_pose_ahead`; the rest of the scene as it is then).
 
     :meth:`render` = :meth:`draw` of a :meth:`snapshot`. The snapshot reads the simulation
     state (``mjv_updateScene``, the terrain tiles, the right camera) and must be taken when
@@ -412,7 +434,7 @@ class StereoRenderer:
     of the left image's own pass. Call :meth:`close` when done (EGL teardown).
     """
 
-    def __init__(self, model: mujoco.MjModel, rig: StereoRig, camera: CameraConfig, error: RigError | None = None):
+    def __init__(self, model: mujoco.MjModel, rig: StereoRig, camera: CameraConfig, error: RigError | None = None, time_offset_s: float = 0.0):
         if (rig.width, rig.height) != (camera.width, camera.height):
             raise SensorError(
                 f"stereo rig {rig.name!r} is {rig.width}x{rig.height} but its camera config asks for "
@@ -422,6 +444,7 @@ class StereoRenderer:
         self.rig = rig
         self.camera = camera
         self.error = error or RigError()
+        self.time_offset_s = time_offset_s
         self._distortions = self.error.lens_distortions(rig)
         self._cam_ids = tuple(self._camera_id(name) for name in (rig.left_camera, rig.right_camera))
         for name, cid in zip((rig.left_camera, rig.right_camera), self._cam_ids):
@@ -487,8 +510,8 @@ class StereoRenderer:
         return self.draw(self.snapshot(data, with_depth))
 
     def snapshot(self, data: mujoco.MjData, with_depth: bool = False) -> RenderRequest:
-        """The pair's scene at the state in ``data``; waits while both of this renderer's
-        scenes are still to be drawn."""
+        """The pair's scene at the state in ``data``, seen from where the cameras are
+        ``time_offset_s`` later; waits while both of this renderer's scenes are still to be drawn."""
         if self._closed:
             raise SensorError(f"StereoRenderer of rig {self.rig.name!r} was closed")
         if not self._geometry_checked:
@@ -509,10 +532,19 @@ class StereoRenderer:
             left = _eyes(scene)
             # the right camera sees the same scene: only the camera changes
             mujoco.mjv_updateCamera(m, data, self._mjv_cams[1], scene)
+            right = _eyes(scene)
         except BaseException:
             self._free_scenes.put(scene)
             raise
-        return RenderRequest(scene, left, _eyes(scene), self.near_m, self.far_m, with_depth)
+        if self.time_offset_s:
+            cam = self._cam_ids[0]
+            position, R = camera_pose_ahead(m, data, cam, self.time_offset_s)
+            origin, turn = data.cam_xpos[cam], R @ data.cam_xmat[cam].reshape(3, 3).T
+            left, right = (_eyes_moved(eyes, origin, position, turn) for eyes in (left, right))
+            for light in scene.lights[: scene.nlight]:
+                if light.headlight:  # it moves with the camera
+                    light.pos, light.dir = position + turn @ (light.pos - origin), turn @ light.dir
+        return RenderRequest(scene, left, right, self.near_m, self.far_m, with_depth)
 
     def draw(self, request: RenderRequest) -> StereoFrame:
         """Render a :meth:`snapshot` (in the thread that draws all of this renderer's pairs)."""
