@@ -194,7 +194,8 @@ def test_drawn_time_offset_has_the_configured_spread_and_leaves_the_other_errors
     base = dict(stereo_rotation_deg=0.04, baseline_error=0.001, focal_error=0.002, camera_imu_rotation_deg=0.2,
                 camera_imu_translation_m=0.005, pan_tilt_offset_deg=0.1, lens_distortion_mrad=0.2)
     rng = np.random.default_rng(4)
-    offsets = np.array([draw_calibration_errors(rig, CalibrationRealism(**base, camera_imu_time_offset_ms=3.0), rng).time_offset_s for _ in range(400)])
+    cfg = CalibrationRealism(**base, camera_imu_time_offset_ms=3.0)
+    offsets = np.array([draw_calibration_errors(rig, cfg, rng).time_offset_s for _ in range(400)])
     assert offsets.std() == pytest.approx(3e-3, rel=0.15) and abs(offsets.mean()) < 0.5e-3
     with_it = draw_calibration_errors(rig, CalibrationRealism(**base, camera_imu_time_offset_ms=3.0), np.random.default_rng(9))
     without = draw_calibration_errors(rig, CalibrationRealism(**base, camera_imu_time_offset_ms=0.0), np.random.default_rng(9))
