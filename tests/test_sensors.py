@@ -24,7 +24,7 @@ from sim.world.sensors import (
     StereoRenderer,
     WheelOdometryModel,
     body_velocity_from_wheels,
-    camera_pose_ahead,
+    camera_motion_ahead,
 )
 
 # --------------------------------------------------------------------------- IMU
@@ -279,9 +279,9 @@ def test_a_time_offset_draws_the_pair_from_where_the_cameras_are_that_much_later
     mujoco.mj_integratePos(model, later.qpos, data.qvel, dt)  # constant velocity: exact for a free body
     mujoco.mj_forward(model, later)
     cam = model.camera("left").id  # at the body's origin, which moves at constant velocity
-    position, R = camera_pose_ahead(model, data, cam, dt)
-    np.testing.assert_allclose(position, later.cam_xpos[cam], atol=1e-9)
-    np.testing.assert_allclose(R, later.cam_xmat[cam].reshape(3, 3), atol=1e-9)
+    shift, turn = camera_motion_ahead(model, data, cam, dt)
+    np.testing.assert_allclose(data.cam_xpos[cam] + shift, later.cam_xpos[cam], atol=1e-9)
+    np.testing.assert_allclose(turn @ data.cam_xmat[cam].reshape(3, 3), later.cam_xmat[cam].reshape(3, 3), atol=1e-9)
     with StereoRenderer(model, RIG, CameraConfig(), time_offset_s=dt) as ahead, StereoRenderer(model, RIG, CameraConfig()) as plain:
         shifted = ahead.render(data, with_depth=True)
         now, truth = plain.render(data, with_depth=True), plain.render(later, with_depth=True)

@@ -60,7 +60,8 @@ from sim.world.sensors import (
     StereoRenderer,
     WheelErrors,
     WheelOdometryModel,
-    camera_pose_ahead,
+    camera_motion_ahead,
+    camera_velocity,
 )
 from sim.world.terrain import Terrain, generate_terrain
 from slam.agent import TeamMarker
@@ -744,18 +745,16 @@ class Run:
 
     def _camera_rate(self, camera: str) -> np.ndarray:
         """True angular velocity of a camera in its own OpenCV axes (rad/s), for motion blur."""
-        out = np.zeros(6)
-        cam = self.world.model.camera(camera).id
-        mujoco.mj_objectVelocity(self.world.model, self.world.data, mujoco.mjtObj.mjOBJ_CAMERA, cam, out, 1)
-        return MUJOCO_TO_OPENCV @ out[:3]
+        return MUJOCO_TO_OPENCV @ camera_velocity(self.world.model, self.world.data, self.world.model.camera(camera).id, local=True)[:3]
 
     def _camera_pose(self, camera: str, ahead_s: float = 0.0) -> np.ndarray:
         """True T_world_cam of a camera (OpenCV axes), ``ahead_s`` from now (a pair's true
-        pose under a camera-IMU time offset: :func:`sim.world.sensors.camera_pose_ahead`)."""
-        position, R = camera_pose_ahead(self.world.model, self.world.data, self.world.model.camera(camera).id, ahead_s)
+        pose under a camera-IMU time offset: :func:`sim.world.sensors.camera_motion_ahead`)."""
+        data, cam = self.world.data, self.world.model.camera(camera).id
+        shift, turn = camera_motion_ahead(self.world.model, data, cam, ahead_s)
         T = np.eye(4)
-        T[:3, :3] = R @ MUJOCO_TO_OPENCV
-        T[:3, 3] = position
+        T[:3, :3] = turn @ data.cam_xmat[cam].reshape(3, 3) @ MUJOCO_TO_OPENCV
+        T[:3, 3] = data.cam_xpos[cam] + shift
         return T
 
     def _markers_in_view(self, robot: Robot, rig: StereoRig) -> bool:

@@ -59,7 +59,8 @@ __all__ = [
     "WheelLike",
     "WheelOdometryModel",
     "body_velocity_from_wheels",
-    "camera_pose_ahead",
+    "camera_motion_ahead",
+    "camera_velocity",
 ]
 
 #: MuJoCo draws the skybox at 0.5..1 x the far plane, with depth: rendering with the far
@@ -356,16 +357,22 @@ class _RenderTarget:
 _Eyes = tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
 
 
-def camera_pose_ahead(model: mujoco.MjModel, data: mujoco.MjData, camera_id: int, ahead_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """The MuJoCo camera's world position and orientation matrix ``ahead_s`` after the state
-    in ``data``, extrapolated at its present linear and angular velocity (a camera-IMU time
-    offset of a few milliseconds; ``data``'s velocities must be current, as after ``mj_step``)."""
-    position, R = data.cam_xpos[camera_id].copy(), data.cam_xmat[camera_id].reshape(3, 3).copy()
+def camera_velocity(model: mujoco.MjModel, data: mujoco.MjData, camera_id: int, local: bool = False) -> np.ndarray:
+    """The MuJoCo camera's ``[angular, linear]`` velocity at its origin, in world axes or
+    (``local``) its own MuJoCo axes (``data``'s velocities must be current, as after ``mj_step``)."""
+    velocity = np.zeros(6)
+    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_CAMERA, camera_id, velocity, int(local))
+    return velocity
+
+
+def camera_motion_ahead(model: mujoco.MjModel, data: mujoco.MjData, camera_id: int, ahead_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """How far the MuJoCo camera moves and turns (world frame: displacement of its origin,
+    rotation) in the ``ahead_s`` after the state in ``data``, at its present velocity (a
+    camera-IMU time offset of a few milliseconds)."""
     if ahead_s == 0.0:
-        return position, R
-    velocity = np.zeros(6)  # world-aligned [angular, linear] at the camera's origin
-    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_CAMERA, camera_id, velocity, 0)
-    return position + velocity[3:] * ahead_s, so3_exp(velocity[:3] * ahead_s) @ R
+        return np.zeros(3), np.eye(3)
+    velocity = camera_velocity(model, data, camera_id)
+    return velocity[3:] * ahead_s, so3_exp(velocity[:3] * ahead_s)
 
 
 def _eyes_moved(eyes: _Eyes, origin: np.ndarray, position: np.ndarray, turn: np.ndarray) -> _Eyes:
@@ -418,7 +425,7 @@ class StereoRenderer:
     MuJoCo, at 0.5..1 x the far plane, and must not pass for terrain).
     ``time_offset_s`` is the camera-IMU time offset (:mod:`sim.world.calibration_errors`):
     each pair shows the world from where its cameras are that long after the state it is
-    snapshot at (:func:`camera_pose_ahead`; the rest of the scene as it is then).
+    snapshot at (:func:`camera_motion_ahead`; the rest of the scene as it is then).
 
     :meth:`render` = :meth:`draw` of a :meth:`snapshot`. The snapshot reads the simulation
     state (``mjv_updateScene``, the terrain tiles, the right camera) and must be taken when
@@ -537,9 +544,9 @@ class StereoRenderer:
             self._free_scenes.put(scene)
             raise
         if self.time_offset_s:
-            cam = self._cam_ids[0]
-            position, R = camera_pose_ahead(m, data, cam, self.time_offset_s)
-            origin, turn = data.cam_xpos[cam], R @ data.cam_xmat[cam].reshape(3, 3).T
+            origin = data.cam_xpos[self._cam_ids[0]]
+            shift, turn = camera_motion_ahead(m, data, self._cam_ids[0], self.time_offset_s)
+            position = origin + shift
             left, right = (_eyes_moved(eyes, origin, position, turn) for eyes in (left, right))
             for light in scene.lights[: scene.nlight]:
                 if light.headlight:  # it moves with the camera
