@@ -722,6 +722,10 @@ class MatchingConfig(StrictModel):
         description="the ICP refinement aligns the whole clouds, or only their points within the obstacle classification's "
         "range (stereo depth error and a calibration's depth bias grow with z^2, eq. 5.2c)",
     )
+    icp_from_prior: bool = slam_field(
+        SlamParam(MatcherParams, "icp_from_prior"),
+        description="ours: a second ICP started at the graph's prediction of the pair; the match keeps whichever ends at the lower truncated cost",
+    )
     min_overlap_m2: PositiveFloat = slam_field(
         SlamParam(MatcherParams, "min_overlap_m2"),
         description="eq. 6.2: xy overlap of the obstacle bounding boxes, widened by 2 relative sigmas",

@@ -45,7 +45,7 @@ from enum import StrEnum
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slam.lie import roll_pitch, wrap_angle, yaw_of
+from slam.lie import roll_pitch, rot_z, se3, wrap_angle, yaw_of
 from slam.registration import IcpResult, horizontal_radius, icp, off_line_count, ransac
 from slam.submap import Submap, voxel_filter
 from slam.voting import hough3d, yaw_sweep
@@ -149,6 +149,10 @@ class MatcherParams:
     icp_iterations: int = 40
     icp_point_resolution_m: float = 0.1  # source cloud subsampling for the ICP
     icp_points: MatchPoints = MatchPoints.ALL
+    # ours: a second ICP started at the graph's prediction of the pair; the match keeps whichever ends at the lower
+    # truncated cost. On smooth ground the hypotheses are ambiguous at 0.1-0.6 m, and the ICP's cost near the truth
+    # is no lower than at a wrong hypothesis's end (docs/matching.md, "The Mars terrain's coarse closures")
+    icp_from_prior: bool = False
     max_icp_rmse_m: float = 0.1
     min_icp_pairs: int = 300
     roll_pitch_sigma_rad: float = math.radians(0.5)  # 4D ICP: the filter's roll/pitch uncertainty of the origins
@@ -398,6 +402,7 @@ class MatchResult:
     hypotheses: int = 0
     correspondences: int = 0
     icp: IcpResult | None = None
+    start: str = ""  # where the kept ICP started: "hypothesis", or "prior" (MatcherParams.icp_from_prior)
     timings: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -527,6 +532,12 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
     cloud_b = np.asarray(b.source[_icp_points(b, params)], dtype=float)
     source, _, _ = voxel_filter(cloud_b, np.zeros(len(cloud_b), bool), np.zeros(len(cloud_b)), params.icp_point_resolution_m)
     fit = _refine(source, a, best[0], params.ransac_dof, params)
+    res.start = "hypothesis"
+    if params.icp_from_prior and prior is not None:
+        T0 = prior.T_a_b if params.ransac_dof == 6 else se3(rot_z(yaw_of(prior.T_a_b[:3, :3])), prior.T_a_b[:3, 3])
+        other = _refine(source, a, T0, params.ransac_dof, params)
+        if other is not None and (fit is None or other.cost < fit.cost):
+            fit, res.start = other, "prior"
     if fit is not None and params.mode is MatchMode.FOUR_SIX_D:  # 8.1.2's 4D+6D: the 4D result refined in 6D
         fit = _refine(source, a, fit.T_a_b, 6, params)
     res.timings["icp"] = time.perf_counter() - t5

@@ -178,6 +178,7 @@ class IcpResult:
     overlap_radius_m: float  # RMS horizontal distance of the paired points from their centroid
     iterations: int
     converged: bool
+    cost: float  # the truncated cost at T_a_b over the source's points (icp), per point: comparable between starts
 
 
 def _increment(delta: np.ndarray, dof: int) -> np.ndarray:
@@ -265,7 +266,8 @@ def icp(
             break
     if len(x) < min_pairs:
         return None
-    return IcpResult(T, float(np.sqrt(np.mean(np.sum((x - p) ** 2, axis=1)))), len(x), horizontal_radius(x), done, converged)
+    rmse = float(np.sqrt(np.mean(np.sum((x - p) ** 2, axis=1))))
+    return IcpResult(T, rmse, len(x), horizontal_radius(x), done, converged, cost / len(source))
 
 
 def horizontal_radius(points: np.ndarray) -> float:

@@ -53,6 +53,7 @@ def match_metrics(closures: ClosureInput, origins: dict[str, dict[int, np.ndarra
         "pairs_not_queued": dict(matcher.not_queued),  # the last pairing's open pairs it owns and did not queue, by reason (eq. 6.1-6.3)
         "submaps_waiting": matcher.waiting,  # received, never prepared
         "wrong_matches": 0,  # accepted, but off by more than WRONG_MATCH_M or WRONG_MATCH_DEG
+        "matches_from_prior": 0,  # accepted from the ICP started at the graph's prediction (MatcherParams.icp_from_prior)
     }
     trans, yaw, rot, prior_trans, norm, rows = [], [], [], [], [], []
     stages: dict[str, list[float]] = {}
@@ -71,10 +72,12 @@ def match_metrics(closures: ClosureInput, origins: dict[str, dict[int, np.ndarra
         yaw.append(math.degrees(e_yaw))
         rot.append(float(np.degrees(rotation_angle(D[:3, :3]))))
         out["wrong_matches"] += e_t > WRONG_MATCH_M or rot[-1] > WRONG_MATCH_DEG
+        out["matches_from_prior"] += res.start == "prior"
         prior_trans.append(float(np.linalg.norm(rec.prior.T_a_b[:3, 3] - true[:3, 3])))
         sigma = np.sqrt(np.diag(res.cov))
         norm += list(D[:3, 3] / sigma[3:]) + [yaw_of(D[:3, :3]) / sigma[2]]
-        rows.append({"t": rec.t, "a": f"{ra}:{res.a[1]}", "b": f"{rb}:{res.b[1]}", "error_m": e_t, "yaw_error_deg": math.degrees(e_yaw)})
+        row = {"t": rec.t, "a": f"{ra}:{res.a[1]}", "b": f"{rb}:{res.b[1]}", "error_m": e_t, "yaw_error_deg": math.degrees(e_yaw)}
+        rows.append({**row, "icp_start": res.start})
     if trans:
         out["translation_error_m"] = statistics(trans, ERROR_STATISTICS)
         out["yaw_error_deg"] = statistics(yaw, ERROR_STATISTICS)
