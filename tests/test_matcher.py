@@ -13,11 +13,14 @@ from scipy.spatial import cKDTree
 
 from slam.lie import roll_pitch, rot_z, rot_zyx, se3, yaw_of
 from slam.matcher import (
+    Keypoints,
     KeypointSelection,
     MatcherParams,
     MatchMode,
     PairQueue,
     Prior,
+    _refine,
+    _refine_best,
     compute_features,
     evaluate_pair,
     match_pair,
@@ -129,6 +132,38 @@ def test_icp_started_at_the_truth_stays_there_on_noisy_gentle_ground():
         yaw_errs.append(yaw_err)
     assert np.median(t_errs) < 0.03 and max(t_errs) < 0.08, t_errs
     assert max(yaw_errs) < 1.0, yaw_errs
+
+
+def _row_of_boulders(rng: np.random.Generator) -> np.ndarray:
+    """Noisy flat ground with five equal boulders 1 m apart along x: shifted by one boulder,
+    four of them still fit, a basin of the ICP's cost beside the true one."""
+    xy = np.column_stack([rng.uniform(-3, 3, 8000), rng.uniform(-1.5, 1.5, 8000)])
+    z = 0.01 * rng.standard_normal(8000)
+    for cx in (-2.0, -1.0, 0.0, 1.0, 2.0):
+        d = np.hypot(xy[:, 0] - cx, xy[:, 1])
+        z += np.where(d < 0.3, np.sqrt(np.maximum(0.09 - d**2, 0)), 0.0)
+    return np.column_stack([xy, z])
+
+
+def test_of_two_icp_starts_the_one_ending_at_the_lower_cost_is_kept():
+    """A start one boulder along ends there, 1 m off; a start 10 cm and 2 deg off ends at the
+    truth at a lower truncated cost, and is kept whichever of the two is named first."""
+    rng = np.random.default_rng(0)
+    target = _row_of_boulders(rng)
+    T = se3(rot_z(0.3), [0.5, -0.2, 0.1])
+    source = apply(np.linalg.inv(T), _row_of_boulders(rng))
+    a = Keypoints(("a", 0), 0, target[:10], target[:10], target.astype(np.float32), np.ones(len(target), bool))
+    p = MatcherParams()
+    near = se3(rot_z(0.3 + math.radians(2)), [0.58, -0.12, 0.1])
+    along = T @ se3(np.eye(3), [1.0, 0.05, 0.0])
+    stuck = _refine(source, a, along, 4, p)
+    assert errors(stuck.T_a_b, T)[0] > 0.9  # the other basin
+    for starts in ({"hypothesis": along, "prior": near}, {"hypothesis": near, "prior": along}):
+        fit, name = _refine_best(source, a, starts, 4, p)
+        assert starts[name] is near
+        assert fit.cost < stuck.cost
+        t_err, yaw_err = errors(fit.T_a_b, T)
+        assert t_err < 0.01 and yaw_err < 0.2
 
 
 def test_line_test_counts_points_off_the_line():
@@ -318,6 +353,28 @@ def test_a_prior_off_in_yaw_rejects_the_match(rendered, voting):
     turned[:3, :3] = rot_z(math.radians(10.0)) @ T_true[:3, :3]
     assert not match_pair(prepare(A, p), prepare(B, p), p, Prior(turned, np.full(3, 0.2), math.radians(1.0))).success
     assert match_pair(prepare(A, p), prepare(B, p), p, Prior(turned, np.full(3, 0.2))).success
+
+
+def test_icp_from_the_prior_keeps_the_lower_cost(rendered):
+    """``icp_from_prior``: from a prediction 0.1 m off the second ICP ends near the truth too
+    (the lower of the two kept); from one 0.8 m off (within wide sigmas) it ends 0.7 m off
+    at a higher cost, and the match is the hypothesis's, as without the second start."""
+    (A, O_a), (B, O_b), _, _ = rendered
+    p = MatcherParams()
+    on = replace(p, icp_from_prior=True)
+    T_true = np.linalg.inv(O_a) @ O_b
+    for offset, sigma in ((0.1, 0.2), (0.8, 1.0)):
+        prior_T = T_true.copy()
+        prior_T[:3, 3] += [offset, 0.0, 0.0]
+        prior = Prior(prior_T, np.full(3, sigma))
+        off_res, on_res = (match_pair(prepare(A, q), prepare(B, q), q, prior) for q in (p, on))
+        assert off_res.success and on_res.success, (off_res.reason, on_res.reason)
+        assert off_res.start == "hypothesis" and on_res.start in ("hypothesis", "prior")
+        assert on_res.icp.cost <= off_res.icp.cost
+        assert errors(on_res.T_a_b, T_true)[0] < 0.1
+        if offset > 0.5:
+            assert on_res.start == "hypothesis"
+            np.testing.assert_array_equal(on_res.T_a_b, off_res.T_a_b)
 
 
 def test_prior_far_from_the_match_rejects_it(rendered):
