@@ -155,7 +155,7 @@ class MatcherParams:
     icp_points: MatchPoints = MatchPoints.ALL
     # ours: a second ICP started at the graph's prediction of the pair; the match keeps whichever ends at the lower
     # truncated cost. On smooth ground the hypotheses are ambiguous at 0.1-0.6 m, and the ICP's cost near the truth
-    # is no lower than at a wrong hypothesis's end (docs/matching.md, "The Mars terrain's coarse closures")
+    # is no lower than at a wrong hypothesis's end (docs/matching.md, "A second ICP from the graph's prediction")
     icp_from_prior: bool = False
     max_icp_rmse_m: float = 0.1
     min_icp_pairs: int = 300
