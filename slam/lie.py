@@ -163,6 +163,11 @@ def se3(R: np.ndarray, p) -> np.ndarray:
     return T
 
 
+def gravity_aligned(T: np.ndarray) -> np.ndarray:
+    """The frame with ``T``'s position and yaw, roll and pitch dropped (thesis 4.1.2)."""
+    return se3(rot_z(yaw_of(T[:3, :3])), T[:3, 3])
+
+
 def apply_planar(T: np.ndarray, xy) -> np.ndarray:
     """The horizontal part of a gravity-aligned pose ``T`` (a rotation about z only) applied
     to ground points ``xy``, (2,) or (n, 2): what a 2D map or planner in one such frame

@@ -49,7 +49,7 @@ from enum import StrEnum
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slam.lie import roll_pitch, rot_z, se3, wrap_angle, yaw_of
+from slam.lie import gravity_aligned, roll_pitch, wrap_angle, yaw_of
 from slam.registration import IcpResult, horizontal_radius, icp, off_line_count, ransac
 from slam.submap import Submap, voxel_filter
 from slam.voting import hough3d, yaw_sweep
@@ -545,7 +545,7 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
     source, _, _ = voxel_filter(cloud_b, np.zeros(len(cloud_b), bool), np.zeros(len(cloud_b)), params.icp_point_resolution_m)
     starts = {"hypothesis": best[0]}
     if params.icp_from_prior and prior is not None:  # 4D: the prediction's yaw and translation, as a hypothesis's
-        starts["prior"] = prior.T_a_b if params.ransac_dof == 6 else se3(rot_z(yaw_of(prior.T_a_b[:3, :3])), prior.T_a_b[:3, 3])
+        starts["prior"] = prior.T_a_b if params.ransac_dof == 6 else gravity_aligned(prior.T_a_b)
     fit, res.start = _refine_best(source, a, starts, params.ransac_dof, params)
     if fit is not None and params.mode is MatchMode.FOUR_SIX_D:  # 8.1.2's 4D+6D: the 4D result refined in 6D
         fit = _refine(source, a, fit.T_a_b, 6, params)

@@ -7,13 +7,13 @@ from sim.evaluation.statistics import StatisticsType, statistics
 from sim.evaluation.trajectory import (
     MIN_DISTANCE_M,
     Trajectory,
-    gravity_aligned,
     in_start_frame,
     path_length,
     trajectory_metrics,
     truth_since,
     write_tum,
 )
+from slam.lie import gravity_aligned
 
 
 def circle(n=200, radius=5.0, z=0.0):

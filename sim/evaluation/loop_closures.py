@@ -76,8 +76,16 @@ def match_metrics(closures: ClosureInput, origins: dict[str, dict[int, np.ndarra
         prior_trans.append(float(np.linalg.norm(rec.prior.T_a_b[:3, 3] - true[:3, 3])))
         sigma = np.sqrt(np.diag(res.cov))
         norm += list(D[:3, 3] / sigma[3:]) + [yaw_of(D[:3, :3]) / sigma[2]]
-        row = {"t": rec.t, "a": f"{ra}:{res.a[1]}", "b": f"{rb}:{res.b[1]}", "error_m": e_t, "yaw_error_deg": math.degrees(e_yaw)}
-        rows.append({**row, "icp_start": res.start})
+        rows.append(
+            {
+                "t": rec.t,
+                "a": f"{ra}:{res.a[1]}",
+                "b": f"{rb}:{res.b[1]}",
+                "error_m": e_t,
+                "yaw_error_deg": math.degrees(e_yaw),
+                "icp_start": res.start,
+            }
+        )
     if trans:
         out["translation_error_m"] = statistics(trans, ERROR_STATISTICS)
         out["yaw_error_deg"] = statistics(yaw, ERROR_STATISTICS)

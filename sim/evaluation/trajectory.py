@@ -24,7 +24,7 @@ from evo.core.units import Unit
 from scipy.spatial.transform import Rotation, Slerp
 
 from sim.evaluation.statistics import StatisticsType, statistics
-from slam.lie import quat_to_rot, se3, wrap_angle, yaw_of
+from slam.lie import gravity_aligned, quat_to_rot, se3, wrap_angle, yaw_of
 
 ERROR_STATISTICS = (StatisticsType.RMSE, StatisticsType.MEAN, StatisticsType.MEDIAN, StatisticsType.MAX)
 
@@ -130,15 +130,6 @@ class ErrorOverTime:
     t: np.ndarray
     position_m: np.ndarray
     yaw_deg: np.ndarray
-
-
-def gravity_aligned(T: np.ndarray) -> np.ndarray:
-    """The frame with T's position and yaw, roll and pitch dropped (thesis 4.1.2)."""
-    out = np.eye(4)
-    c, s = math.cos(yaw_of(T[:3, :3])), math.sin(yaw_of(T[:3, :3]))
-    out[:2, :2] = [[c, -s], [s, c]]
-    out[:3, 3] = T[:3, 3]
-    return out
 
 
 def frame_origins_truth(start_t: float | None, switch_times: dict[int, float], truth: Trajectory) -> dict[int, np.ndarray]:
