@@ -722,6 +722,11 @@ class MatchingConfig(StrictModel):
         description="the ICP refinement aligns the whole clouds, or only their points within the obstacle classification's "
         "range (stereo depth error and a calibration's depth bias grow with z^2, eq. 5.2c)",
     )
+    sweep_within_prior: bool = slam_field(
+        SlamParam(MatcherParams, "sweep_within_prior"),
+        description="ours: the yaw sweep votes only for translations the 2-sigma plausibility check can accept, as it sweeps "
+        "only such yaws",
+    )
     icp_from_prior: bool = slam_field(
         SlamParam(MatcherParams, "icp_from_prior"),
         description="ours: a second ICP started at the graph's prediction of the pair; the match keeps whichever ends at the lower truncated cost",

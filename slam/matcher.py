@@ -134,6 +134,10 @@ class MatcherParams:
     max_clusters: int = 8  # per voting direction, largest first
     # the yaw sweep's grid: half a step over a 5 m lever is 9 cm, a third of a bin
     hough_yaw_step_rad: float = math.radians(2.0)
+    # ours: the yaw sweep votes only for translations the 2-sigma check can accept (as it sweeps only such yaws), so
+    # that peaks the check would reject do not take the places of max_clusters; measured in docs/matching.md
+    # ("Voting inside the plausible translations")
+    sweep_within_prior: bool = False
     ransac_iterations: int = 100
     ransac_inlier_m: float = 0.2
     # distinct keypoints on each side supporting a hypothesis: the correct closures of the Etna and rock field runs and
@@ -448,12 +452,17 @@ def _yaw_bound(prior: Prior, bound: float, sigma_yaw: float) -> float:
 
 def _clusters(a: Keypoints, b: Keypoints, corr: np.ndarray, params: MatcherParams, prior: Prior | None) -> list[np.ndarray]:
     """The voting of 6.1.2 (``params.voting``): clusters of indices into ``corr``. The yaw sweep covers only the
-    yaws the plausibility checks can accept (``prior``'s yaw sigma and the hypothesis's at the shortest lever)."""
+    yaws the plausibility checks can accept (``prior``'s yaw sigma and the hypothesis's at the shortest lever), and
+    with ``params.sweep_within_prior`` only the translations they can accept, widened by a vote bin (a cluster's
+    neighbourhood; RANSAC refits its translation)."""
     if params.voting is Voting.YAW_SWEEP:
-        window = None
+        window = t_window = None
         if prior is not None and prior.sigma_yaw is not None:  # the yaws _within can accept, at the shortest lever
             window = (yaw_of(prior.T_a_b[:3, :3]), _yaw_bound(prior, params.sigma_bound, _yaw_sigma(params.hypothesis_sigma_m, 0.0)))
-        return yaw_sweep(a.points, b.points, corr, params.hough_bin_m, params.hough_yaw_step_rad, params.hough_min_votes, params.max_clusters, window)
+        if prior is not None and params.sweep_within_prior:  # the translations _within can accept, a bin wider
+            t_window = (prior.T_a_b[:3, 3], params.sigma_bound * np.hypot(prior.sigma_xyz, params.hypothesis_sigma_m) + params.hough_bin_m)
+        votes = (params.hough_bin_m, params.hough_yaw_step_rad, params.hough_min_votes, params.max_clusters)
+        return yaw_sweep(a.points, b.points, corr, *votes, window, t_window)
     votes = (params.hough_bin_m, params.hough_min_votes, params.max_clusters)
     return hough3d(a.points, a.frames, b.points, b.frames, corr, *votes) + hough3d(b.points, b.frames, a.points, a.frames, corr[:, ::-1], *votes)
 

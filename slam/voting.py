@@ -60,12 +60,15 @@ def yaw_sweep(
     min_votes: int,
     max_clusters: int,
     yaw_window: tuple[float, float] | None = None,
+    t_window: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[np.ndarray]:
     """Clusters of the 4D vote (yaw on a grid of ``yaw_step`` rad, translation in
     ``bin_m`` cells): lists of indices into ``corr``. The yaws cover the full turn, or
     ``yaw_window`` = (centre, half width): the only yaws the plausibility checks would
-    accept, so that clusters at others do not take the places of ``max_clusters``. One
-    direction suffices: the vote space of ``b`` into ``a`` is that of ``a`` into ``b``."""
+    accept, so that clusters at others do not take the places of ``max_clusters``.
+    ``t_window`` = (centre (3,), half widths (3,)) likewise keeps only the votes for
+    translations inside that box. One direction suffices: the vote space of ``b`` into
+    ``a`` is that of ``a`` into ``b``."""
     if len(corr) < min_votes:
         return []
     p, q = scene_points[corr[:, 0]], model_points[corr[:, 1]]
@@ -79,25 +82,32 @@ def yaw_sweep(
     t[..., 0] = p[:, 0] - (c * q[:, 0] - s * q[:, 1])
     t[..., 1] = p[:, 1] - (s * q[:, 0] + c * q[:, 1])
     t[..., 2] = p[:, 2] - q[:, 2]
-    return _peaks(np.floor(t / bin_m).astype(np.int64), min_votes, max_clusters, _SWEEP_CANDIDATES)
+    valid = None if t_window is None else np.all(np.abs(t - t_window[0]) <= t_window[1], axis=-1)
+    return _peaks(np.floor(t / bin_m).astype(np.int64), min_votes, max_clusters, _SWEEP_CANDIDATES, valid)
 
 
-def _peaks(cells: np.ndarray, min_votes: int, max_clusters: int, candidates: int | None) -> list[np.ndarray]:
+def _peaks(cells: np.ndarray, min_votes: int, max_clusters: int, candidates: int | None, valid: np.ndarray | None = None) -> list[np.ndarray]:
     """Greedy clusters from (layers, n, 3) vote cells (a layer per yaw; one for Hough3D):
-    neighbourhood sums at every occupied cell, or at the ``candidates`` fullest ones."""
-    lo = cells.reshape(-1, 3).min(axis=0) - 1
-    width = int((cells.reshape(-1, 3).max(axis=0) - lo).max()) + 2
+    neighbourhood sums at every occupied cell, or at the ``candidates`` fullest ones;
+    only the votes where ``valid`` (layers, n) is true, all without it."""
+    if valid is None:
+        valid = np.ones(cells.shape[:2], bool)
+    vl, vi = np.nonzero(valid)
+    if len(vl) < min_votes:
+        return []
+    voted = cells[vl, vi]
+    lo = voted.min(axis=0) - 1
+    width = int((voted.max(axis=0) - lo).max()) + 2
 
     def key(layer, c):
         return ((layer * width + (c[..., 0] - lo[0])) * width + (c[..., 1] - lo[1])) * width + (c[..., 2] - lo[2])
 
-    layer = np.broadcast_to(np.arange(len(cells))[:, None], cells.shape[:2])
-    uniq, first, counts = np.unique(key(layer, cells).ravel(), return_index=True, return_counts=True)
+    uniq, first, counts = np.unique(key(vl, voted), return_index=True, return_counts=True)
     at = np.arange(len(uniq))
     if candidates is not None and len(uniq) > candidates:
         at = np.sort(np.argpartition(-counts, candidates - 1)[:candidates])
-    at_layer, at_cell = np.divmod(first[at], cells.shape[1])
-    centre = cells[at_layer, at_cell]
+    at_layer = vl[first[at]]
+    centre = voted[first[at]]
     support = np.zeros(len(at), np.int64)
     for off in _OFFSETS:
         k = key(at_layer, centre + off)
@@ -108,7 +118,7 @@ def _peaks(cells: np.ndarray, min_votes: int, max_clusters: int, candidates: int
     for u in np.argsort(-support, kind="stable"):
         if support[u] < min_votes:
             break
-        near = np.all(np.abs(cells[at_layer[u]] - centre[u]) <= 1, axis=1) & ~taken
+        near = np.all(np.abs(cells[at_layer[u]] - centre[u]) <= 1, axis=1) & valid[at_layer[u]] & ~taken
         if near.sum() >= min_votes:
             clusters.append(np.flatnonzero(near))
             taken |= near

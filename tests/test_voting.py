@@ -51,6 +51,25 @@ def test_yaw_sweep_votes_only_inside_its_window(problem):
     assert _best(outside, is_right) <= 5
 
 
+def test_yaw_sweep_votes_only_for_translations_inside_its_window(problem):
+    """A repeated structure 2 m along (250 correspondences that agree on a wrong translation at
+    the true yaw) outvotes the 40 right ones and the wrong ones' background, which peaks at
+    the true translation too; inside a window around the true translation only the right
+    ones and that background remain to vote."""
+    scene, model, corr, is_right = problem
+    rng = np.random.default_rng(7)
+    decoy = rng.choice(len(model), 250, replace=False)
+    T_decoy = se3(T_TRUE[:3, :3], T_TRUE[:3, 3] + [2.0, 0.5, 0.0])
+    scene = np.vstack([scene, model[decoy] @ T_decoy[:3, :3].T + T_decoy[:3, 3] + rng.normal(0, 0.02, (250, 3))])
+    corr = np.vstack([corr, np.column_stack([len(model) + np.arange(250), decoy])])
+    is_right = np.concatenate([is_right, np.zeros(250, bool)])
+    (largest,) = yaw_sweep(scene, model, corr, 0.3, math.radians(2.0), 5, 1)
+    assert is_right[largest].sum() <= 5 and len(largest) >= 250
+    window = (T_TRUE[:3, 3] + [0.3, -0.2, 0.0], np.array([0.9, 0.9, 0.5]))
+    (inside,) = yaw_sweep(scene, model, corr, 0.3, math.radians(2.0), 5, 1, None, window)
+    assert is_right[inside].sum() >= 38 and is_right[inside].mean() > 10 * is_right.mean()
+
+
 def test_hough3d_clusters_them_only_with_frames_that_agree(problem):
     """With each scene frame the model frame turned by the true rotation, Hough3D groups the
     right correspondences; with the frames 45 deg apart (random axes) their votes scatter."""
