@@ -332,12 +332,12 @@ def test_yaw_sweep_voting_matches_the_rendered_submaps(rendered, keypoints):
     """The yaw sweep (no local reference frames) finds the same transform, with and without a
     prior, and voting only inside the prior's plausible translations (``sweep_within_prior``)."""
     (A, O_a), (B, O_b), _, _ = rendered
-    p = MatcherParams(keypoints=keypoints, voting="yaw_sweep")
+    sweep = MatcherParams(keypoints=keypoints, voting="yaw_sweep")
     T_true = np.linalg.inv(O_a) @ O_b
     prior_T = T_true.copy()
     prior_T[:3, 3] += [0.15, -0.1, 0.05]
-    prior = Prior(prior_T, np.full(3, 0.2), math.radians(2.0))
-    for p, prior in ((p, None), (p, prior), (replace(p, sweep_within_prior=True), prior)):
+    near = Prior(prior_T, np.full(3, 0.2), math.radians(2.0))
+    for p, prior in ((sweep, None), (sweep, near), (replace(sweep, sweep_within_prior=True), near)):
         ka = prepare(A, p)
         res = match_pair(ka, prepare(B, p), p, prior)
         assert res.success, res.reason
