@@ -25,7 +25,9 @@ Choices where the thesis used PCL:
   (Tombari et al. 2010: the eigenvectors of the distance-weighted neighbourhood scatter,
   signs towards the majority of neighbours), run in both directions (6.1.2, the asymmetry
   of translation and rotation); or, ours, a sweep over yaw that votes in the 4D space of
-  gravity-aligned transformations and needs no reference frames.
+  gravity-aligned transformations and needs no reference frames, over the yaws the
+  plausibility checks can accept and optionally (``MatcherParams.sweep_within_prior``)
+  only for the translations they can accept.
 - The plausibility checks bound the yaw as well as the translation (ours; the thesis
   bounds the translation): both against the graph's relative sigmas and the match's own
   combined, the match's yaw sigma being its translation sigma over the lever of its
