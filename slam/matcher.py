@@ -436,7 +436,7 @@ def _within(T: np.ndarray, prior: Prior | None, bound: float, sigma_xyz: np.ndar
         return True
     if prior.sigma_yaw is not None and abs(wrap_angle(yaw_of(T[:3, :3]) - yaw_of(prior.T_a_b[:3, :3]))) > _yaw_bound(prior, bound, sigma_yaw):
         return False
-    return bool(np.all(np.abs(T[:3, 3] - prior.T_a_b[:3, 3]) <= bound * np.hypot(prior.sigma_xyz, sigma_xyz)))
+    return bool(np.all(np.abs(T[:3, 3] - prior.T_a_b[:3, 3]) <= _translation_bound(prior, bound, sigma_xyz)))
 
 
 _MIN_LEVER_M = 0.5  # the shortest lever a translation sigma is turned into a yaw sigma over
@@ -445,6 +445,12 @@ _MIN_LEVER_M = 0.5  # the shortest lever a translation sigma is turned into a ya
 def _yaw_sigma(sigma_m: float, lever_m: float) -> float:
     """A translation sigma turned into a yaw sigma over ``lever_m`` (at least ``_MIN_LEVER_M``)."""
     return sigma_m / max(lever_m, _MIN_LEVER_M)
+
+
+def _translation_bound(prior: Prior, bound: float, sigma_xyz: np.ndarray | float) -> np.ndarray:
+    """The largest offset per axis from ``prior``'s translation the plausibility check accepts (a match's sigmas
+    ``sigma_xyz``)."""
+    return bound * np.hypot(prior.sigma_xyz, sigma_xyz)
 
 
 def _yaw_bound(prior: Prior, bound: float, sigma_yaw: float) -> float:
@@ -462,9 +468,9 @@ def _clusters(a: Keypoints, b: Keypoints, corr: np.ndarray, params: MatcherParam
         if prior is not None and prior.sigma_yaw is not None:  # the yaws _within can accept, at the shortest lever
             window = (yaw_of(prior.T_a_b[:3, :3]), _yaw_bound(prior, params.sigma_bound, _yaw_sigma(params.hypothesis_sigma_m, 0.0)))
         if prior is not None and params.sweep_within_prior:  # the translations _within can accept, a bin wider
-            t_window = (prior.T_a_b[:3, 3], params.sigma_bound * np.hypot(prior.sigma_xyz, params.hypothesis_sigma_m) + params.hough_bin_m)
-        votes = (params.hough_bin_m, params.hough_yaw_step_rad, params.hough_min_votes, params.max_clusters)
-        return yaw_sweep(a.points, b.points, corr, *votes, window, t_window)
+            t_window = (prior.T_a_b[:3, 3], _translation_bound(prior, params.sigma_bound, params.hypothesis_sigma_m) + params.hough_bin_m)
+        grid = (params.hough_bin_m, params.hough_yaw_step_rad, params.hough_min_votes, params.max_clusters)
+        return yaw_sweep(a.points, b.points, corr, *grid, window, t_window)
     votes = (params.hough_bin_m, params.hough_min_votes, params.max_clusters)
     return hough3d(a.points, a.frames, b.points, b.frames, corr, *votes) + hough3d(b.points, b.frames, a.points, a.frames, corr[:, ::-1], *votes)
 
