@@ -90,12 +90,13 @@ def _peaks(cells: np.ndarray, min_votes: int, max_clusters: int, candidates: int
     """Greedy clusters from (layers, n, 3) vote cells (a layer per yaw; one for Hough3D):
     neighbourhood sums at every occupied cell, or at the ``candidates`` fullest ones;
     only the votes where ``valid`` (layers, n) is true, all without it."""
-    if valid is None:
-        valid = np.ones(cells.shape[:2], bool)
-    vl, vi = np.nonzero(valid)
+    if valid is None:  # every vote: a view, no gather
+        voted, vl = cells.reshape(-1, 3), np.repeat(np.arange(len(cells)), cells.shape[1])
+    else:
+        vl, vi = np.nonzero(valid)
+        voted = cells[vl, vi]
     if len(vl) < min_votes:
         return []
-    voted = cells[vl, vi]
     lo = voted.min(axis=0) - 1
     width = int((voted.max(axis=0) - lo).max()) + 2
 
@@ -118,7 +119,9 @@ def _peaks(cells: np.ndarray, min_votes: int, max_clusters: int, candidates: int
     for u in np.argsort(-support, kind="stable"):
         if support[u] < min_votes:
             break
-        near = np.all(np.abs(cells[at_layer[u]] - centre[u]) <= 1, axis=1) & valid[at_layer[u]] & ~taken
+        near = np.all(np.abs(cells[at_layer[u]] - centre[u]) <= 1, axis=1) & ~taken
+        if valid is not None:
+            near &= valid[at_layer[u]]
         if near.sum() >= min_votes:
             clusters.append(np.flatnonzero(near))
             taken |= near
