@@ -630,6 +630,7 @@ class Run:
                     onboard.record(runtime.recent_truth)
                 if runtime.dataset is not None:
                     runtime.dataset.truth(now, pos, quat, robot.velocity()[0], runtime.imu.gyro_bias, runtime.imu.accel_bias)
+            t = self.timers.add("evaluation", t)  # the truth and the estimate logged beside it
             if robot.dead:  # its sensors and computer are off; the truth goes on
                 runtime.inertial.take(data)
                 continue
