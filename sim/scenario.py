@@ -746,9 +746,21 @@ class MatchingConfig(StrictModel):
         SlamParam(MatcherParams, "sigma_bound"),
         description="hypotheses and results must lie within this many relative sigmas of the graph",
     )
+    descriptor: Literal["fpfh", "spin"] = slam_field(
+        SlamParam(MatcherParams, "descriptor"),
+        description="keypoint descriptors: FPFH (a stand-in for the thesis's CSHOT, 6.1.2), or spin images about the gravity "
+        "axis (ours; yaw-invariant, no normals or reference frames)",
+    )
     descriptor_radius_m: PositiveFloat = slam_field(
         SlamParam(MatcherParams, "descriptor_radius_m"), description="FPFH radius (and of the known-space check around keypoints)"
     )
+    spin_radius_m: PositiveFloat = slam_field(
+        SlamParam(MatcherParams, "spin_radius_m"), description="spin images: the neighbourhood's horizontal radius about the vertical axis"
+    )
+    spin_height_m: PositiveFloat = slam_field(
+        SlamParam(MatcherParams, "spin_height_m"), description="spin images: heights within +-this of the keypoint (beyond: the edge bins)"
+    )
+    spin_bins: int = slam_field(SlamParam(MatcherParams, "spin_bins"), ge=2, description="spin images: bins of distance and of height each")
     descriptor_resolution_m: NonNegFloat = slam_field(
         SlamParam(MatcherParams, "descriptor_resolution_m"),
         description=(
