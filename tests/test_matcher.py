@@ -327,12 +327,13 @@ def test_released_geometry_is_rebuilt_to_the_same_match(rendered):
     np.testing.assert_array_equal(again.cov, first.cov)
 
 
-@pytest.mark.parametrize("keypoints", ["obstacles", "both"])
-def test_yaw_sweep_voting_matches_the_rendered_submaps(rendered, keypoints):
+@pytest.mark.parametrize("keypoints,descriptor", [("obstacles", "fpfh"), ("both", "fpfh"), ("both", "spin")])
+def test_yaw_sweep_voting_matches_the_rendered_submaps(rendered, keypoints, descriptor):
     """The yaw sweep (no local reference frames) finds the same transform, with and without a
-    prior, and voting only inside the prior's plausible translations (``sweep_within_prior``)."""
+    prior, and voting only inside the prior's plausible translations (``sweep_within_prior``);
+    with FPFH and with spin images about the gravity axis."""
     (A, O_a), (B, O_b), _, _ = rendered
-    sweep = MatcherParams(keypoints=keypoints, voting="yaw_sweep")
+    sweep = MatcherParams(keypoints=keypoints, voting="yaw_sweep", descriptor=descriptor)
     T_true = np.linalg.inv(O_a) @ O_b
     prior_T = T_true.copy()
     prior_T[:3, 3] += [0.15, -0.1, 0.05]
