@@ -139,7 +139,7 @@ class MatcherParams:
     descriptor_resolution_m: float = 0.0
     # spin images (descriptor spin): spin_bins distances from the vertical axis in [0, spin_radius_m] by spin_bins heights
     # in [-spin_height_m, spin_height_m]; on Etna's submaps the true partner of a keypoint was among its 3 nearest
-    # descriptors 3.6 times as often as with FPFH at 0.4 m (docs/matching.md, "Spin images about the gravity axis")
+    # descriptors for 22 % of the keypoints, against 6-10 % with FPFH (docs/matching.md, "Spin images about the gravity axis")
     spin_radius_m: float = 0.8
     spin_height_m: float = 0.5
     spin_bins: int = 10

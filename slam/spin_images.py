@@ -8,9 +8,9 @@ zero roll and pitch, and the 4D alignment of eq. 6.5-6.7 keeps them so), so the 
 the vertical itself: the descriptor is invariant to yaw, the only rotation the 4D
 matcher estimates, and needs neither a normal nor a local reference frame, both of
 which stereo noise turns from one view to the next (docs/matching.md, "Voting without
-reference frames"). It is a stand-in for the thesis's CSHOT (6.1.2), which no maintained
-Python library offers; no library offers this one either, so it is written here, as a
-numba kernel.
+reference frames"). It stands in for the thesis's CSHOT (6.1.2), which no maintained
+Python library offers; neither does one offer spin images (PCL's spin about the normal and
+lack a maintained Python binding), so they are written here, as a numba kernel.
 
 Each neighbour within ``radius`` adds a unit weight, bilinearly interpolated between
 the bin centres (points beyond the outer centres go to the edge bins; heights are
