@@ -20,6 +20,7 @@ clouds' uneven density, and each image is scaled to unit L2 norm.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numba
@@ -60,7 +61,7 @@ def vertical_spin_images(cloud: np.ndarray, tree: cKDTree, centers: np.ndarray, 
     nbs = tree.query_ball_point(np.asarray(centers, dtype=float), radius)
     starts = np.zeros(len(centers) + 1, np.int64)
     starts[1:] = np.cumsum([len(n) for n in nbs])
-    flat = np.fromiter((i for n in nbs for i in n), np.int64, count=int(starts[-1]))
+    flat = np.fromiter(itertools.chain.from_iterable(nbs), np.int64, count=int(starts[-1]))
     out = np.zeros((len(centers), bins * bins))
     cloud, centers = np.ascontiguousarray(cloud, dtype=float), np.ascontiguousarray(centers, dtype=float)
     _images(cloud, centers, starts, flat, float(radius), int(bins), float(height), out)
