@@ -145,7 +145,9 @@ class MatcherParams:
     spin_bins: int = 10
     normal_radius_m: float = 0.2  # thesis r = 0.2 m for normals, frames and descriptors
     nearest: int = 3  # most similar features per keypoint, both directions
-    max_descriptor_distance: float = 0.25  # L2 between unit descriptors over its range [0, sqrt 2] (thesis 0.5 for CSHOT)
+    # L2 between unit descriptors over its range [0, sqrt 2] (thesis 0.5 for CSHOT); at 0.25 it drops almost no right
+    # correspondence of FPFH or spin images (docs/matching.md, "The distance threshold for spin images")
+    max_descriptor_distance: float = 0.25
     # voting and RANSAC
     voting: Voting = Voting.HOUGH3D
     hough_bin_m: float = 0.3
