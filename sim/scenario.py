@@ -769,7 +769,10 @@ class MatchingConfig(StrictModel):
         ),
     )
     max_descriptor_distance: float = slam_field(
-        SlamParam(MatcherParams, "max_descriptor_distance"), gt=0, le=1, description="L2 between unit descriptors (FPFH or spin images), scaled to [0, 1]"
+        SlamParam(MatcherParams, "max_descriptor_distance"),
+        gt=0,
+        le=1,
+        description="L2 between unit descriptors (FPFH or spin images), scaled to [0, 1]",
     )
     max_icp_rmse_m: PositiveFloat = slam_field(
         SlamParam(MatcherParams, "max_icp_rmse_m"), description="a refined match with a larger point-to-point RMSE is rejected"
