@@ -3,11 +3,15 @@ field, a loop, and the same leg again; the submaps it rendered on the two passes
 paired and matched by its lane's background jobs, and the accepted closure agrees with
 the true relative pose of the two submap origins (``metrics.json`` ``loop_closures``)."""
 
+from pathlib import Path
+
 import pytest
+import yaml
 
 from sim.run.run_folder import run_to_folder
 from sim.scenario import load_scenario
 
+ETNA = Path(__file__).resolve().parents[1] / "scenarios" / "etna_two_rovers.yaml"
 REVISIT = {
     "name": "revisit",
     "seed": 4,
@@ -27,24 +31,11 @@ REVISIT = {
             "route": {"speed_mps": 0.3, "waypoints": [[0, -2], [0, 1.5], [-7, 1.5], [-7, -2], [0, -2]]},
         }
     ],
-    # as scenarios/rock_field_revisit.yaml: a few centimetres of drift leave every revisit "already certain" (eq. 6.3);
-    # obstacle keypoints alone (classified out to 2.5 m) leave these strips line-like, salient geometry widens them.
-    # The matcher as scenarios/etna_two_rovers.yaml sets it (spin images, votes over yaw): it closes this revisit on
-    # seeds 4-7 within 12 cm. Hough3D's votes, the default, close it on seeds 5 and 6 but found no hypothesis on seed 4
-    # after a fresh set-up on 2026-12-07, where they had closed it before (docs/matching.md, "Voting without reference
-    # frames")
-    "slam": {
-        "mapping": {"submap_distance_m": 7.0},
-        "matching": {
-            "sigma_scale": 3.0,
-            "stereo_error_depth_m": 1.0,
-            "keypoints": "both",
-            "voting": "yaw_sweep",
-            "descriptor": "spin",
-            "descriptor_resolution_m": 0.05,
-            "icp_from_prior": True,
-        },
-    },
+    # the matcher as scenarios/etna_two_rovers.yaml sets it (salient keypoints besides the obstacles, sigmas widened as
+    # the graph is overconfident, spin images, votes over yaw): at a46b171 it closed this revisit on seeds 4-7 within
+    # 12 cm. Hough3D's votes, the default, closed it on seeds 5 and 6 but found no hypothesis on seed 4 after a fresh
+    # set-up on 2026-12-07, where they had closed it before (docs/matching.md, "Voting without reference frames")
+    "slam": {"mapping": {"submap_distance_m": 7.0}, "matching": yaml.safe_load(ETNA.read_text())["slam"]["matching"]},
     "output": {"recording": False, "topdown_png": False},
 }
 
