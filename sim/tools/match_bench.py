@@ -11,7 +11,7 @@ against its true transform.
 
 Thesis (8.1): keypoints and features 0.39 s per map, feature matching 3.07 s per pair,
 Hough voting 0.02 s, ICP 2.38 s. Stage names here: ``keypoints`` (suitability and
-keypoints, per submap), ``features`` (normals, FPFH, reference frames, per suitable
+keypoints, per submap), ``features`` (normals, descriptors, reference frames, per suitable
 submap, computed on first use), and per pair ``correspondences``, ``hough``, ``ransac``
 (hypotheses and their checks) and ``icp`` (pairs that reach it).
 
