@@ -496,7 +496,12 @@ class Agent:
 
     def attempt_match(self, cand: Candidate, t: float) -> tuple[list[Outgoing], MatchRecord]:
         """Match a queued pair (6.1.2): a loop closure for the team (and this robot's graph) on success."""
-        record = self.matcher.attempt(cand, t)
+        return self.match_done(self.matcher.attempt(cand, t))
+
+    def match_done(self, record: MatchRecord) -> tuple[list[Outgoing], MatchRecord]:
+        """A finished attempt (:meth:`TeamMatcher.attempt`, or its parts): the scenario's wrong
+        match if one is due, and a loop closure for the team on success."""
+        t = record.t
         if self.faults is not None:
             res = record.result
             wrong = self.faults.match(t, res.a, res.b, record.prior.T_a_b, res.success)
@@ -507,7 +512,7 @@ class Agent:
         res = record.result
         if not res.success:
             return [], record
-        (ra, ia), (rb, ib) = cand.pair
+        (ra, ia), (rb, ib) = res.a, res.b
         msg = LoopClosureMessage(ra, ia, record.frame_a, rb, ib, record.frame_b, res.T_a_b, res.cov)
         return [self._outgoing(KIND_LOOP_CLOSURE, msg)], record
 

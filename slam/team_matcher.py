@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.graph import MultiRobotGraph
-from slam.matcher import Candidate, MatcherParams, MatchResult, PairQueue, Prior, SubmapKey, match_pair
+from slam.matcher import Candidate, Keypoints, MatcherParams, MatchResult, PairQueue, Prior, SubmapKey, match_pair
 from slam.submap import Submap
 
 
@@ -41,6 +41,21 @@ class MatchRecord:
     frame_b: int
     prior: Prior
     result: MatchResult
+
+
+@dataclass(frozen=True)
+class PendingMatch:
+    """A started attempt (:meth:`TeamMatcher.start`): everything :func:`match_pair` needs.
+    :meth:`run` touches no state but the two submaps' cached features and geometry."""
+
+    cand: Candidate
+    prior: Prior
+    a: Keypoints
+    b: Keypoints
+    params: MatcherParams
+
+    def run(self) -> MatchResult:
+        return match_pair(self.a, self.b, self.params, self.prior)
 
 
 class TeamMatcher:
@@ -125,13 +140,26 @@ class TeamMatcher:
         return self.queue.pop()
 
     def attempt(self, cand: Candidate, t: float) -> MatchRecord:
-        """Matching (6.1.2) of one queued pair against the prior from the last pairing."""
+        """Matching (6.1.2) of one queued pair against the prior from the last pairing:
+        :meth:`start`, :meth:`PendingMatch.run` and :meth:`finish` in one go."""
+        pending = self.start(cand)
+        return self.finish(pending, pending.run(), t)
+
+    def start(self, cand: Candidate) -> PendingMatch:
+        """An attempt's first part: the pair is taken, its prior fixed from the last pairing.
+        The :class:`PendingMatch` may then run anywhere (``sim/run/onboard.py`` runs it beside
+        the run loop) while the matcher takes new submaps; the next pairing or attempt
+        waits for :meth:`finish`."""
         a, b = cand.pair
         self.queue.mark_attempted(cand.pair)
         S_a, S_b = self._origins[a], self._origins[b]
         prior = Prior(np.linalg.inv(S_a) @ S_b, cand.sigma_xyz, cand.sigma_yaw)
-        result = match_pair(self.queue.prepared[a], self.queue.prepared[b], self.params, prior)
-        self.queue.hold_geometry(cand.pair)
-        record = MatchRecord(t, self.frames[a], self.frames[b], prior, result)
+        return PendingMatch(cand, prior, self.queue.prepared[a], self.queue.prepared[b], self.params)
+
+    def finish(self, pending: PendingMatch, result: MatchResult, t: float) -> MatchRecord:
+        """An attempt's last part: the matched pair's geometry is held, the record kept."""
+        a, b = pending.cand.pair
+        self.queue.hold_geometry(pending.cand.pair)
+        record = MatchRecord(t, self.frames[a], self.frames[b], pending.prior, result)
         self.records.append(record)
         return record

@@ -1,3 +1,5 @@
+from concurrent.futures import Future
+
 import pytest
 import simpy
 
@@ -29,7 +31,31 @@ def test_a_job_holds_its_core_for_the_stages_its_result_says_it_ran():
     lane.submit("matching", lambda: "no hypothesis", lambda r, t: done.append((r, t)), extra_stages=icp)
     env.run()
     assert done == [("refined", pytest.approx(5.0)), ("no hypothesis", pytest.approx(8.0))]
-    assert ComputeModel(ComputeConfig(model="measured", measured_scale=2.0)).cost("matching", 0.5, ("icp",)) == 1.0
+    measured = ComputeModel(ComputeConfig(model="measured", measured_scale=2.0))
+    assert measured.cost("matching", 0.5) == 1.0 and measured.extra_cost(("icp",)) == 0.0
+
+
+def test_work_beside_the_loop_holds_the_stage_cost_then_the_stages_its_result_names():
+    """Offloaded work (a future, as ImagePipeline.background returns): the job holds its stage's
+    cost, takes the result when that is up, then holds the stages it names; a real-time job
+    that preempts it in between delays the finish by its own cost."""
+    env = simpy.Environment()
+    lane = make_lane(env, stages={"matching_s": 3.0, "icp_s": 2.0, "vo_s": 0.5})
+    future, resolved, done = Future(), [], []
+
+    def resolve(f):
+        resolved.append(env.now)
+        return f.result()
+
+    lane.resolve = resolve
+    icp = lambda result: ("icp",) if result == "refined" else ()  # noqa: E731
+    lane.submit("matching", lambda: future, lambda r, t: done.append((r, t)), priority=Priority.BACKGROUND, extra_stages=icp)
+    env.run(until=1.0)
+    future.set_result("refined")
+    lane.submit("vo", lambda: "delta", lambda r, t: done.append((r, t)))  # preempts the attempt at 1.0
+    env.run()
+    assert resolved == [pytest.approx(3.5)]
+    assert done == [("delta", pytest.approx(1.5)), ("refined", pytest.approx(5.5))]
 
 
 def test_jobs_queue_on_one_core_and_priorities_order_them():

@@ -41,8 +41,29 @@ REVISIT = {
 
 
 @pytest.fixture(scope="module")
-def metrics(tmp_path_factory):
-    return run_to_folder(load_scenario(REVISIT), tmp_path_factory.mktemp("revisit"))
+def runs(tmp_path_factory):
+    """The revisit with its matching on the background thread beside the loop, and inline (sim/run/pipeline.py)."""
+    return [run_to_folder(load_scenario(REVISIT), tmp_path_factory.mktemp(name), image_workers=n) for name, n in (("threaded", 1), ("inline", 0))]
+
+
+@pytest.fixture(scope="module")
+def metrics(runs):
+    return runs[0]
+
+
+def _without_timings(value):
+    if isinstance(value, dict):
+        return {k: _without_timings(v) for k, v in value.items() if k != "runtime" and "wall" not in k and not k.endswith("_ms")}
+    if isinstance(value, list):
+        return [_without_timings(v) for v in value]
+    return value
+
+
+def test_matching_beside_the_loop_gives_what_matching_inline_gives(runs):
+    """The attempts run on the background thread while the loop goes on; every metric but wall times is the same."""
+    threaded, inline = (_without_timings(m) for m in runs)
+    assert threaded["loop_closures"]["robots"]["lru1"]["matches"]["attempts"] > 0
+    assert threaded == inline
 
 
 def test_the_revisit_closes_a_correct_loop(metrics):

@@ -48,13 +48,16 @@ class ComputeModel:
     def __init__(self, cfg: ComputeConfig):
         self.cfg = cfg
 
-    def cost(self, stage: str, wall_s: float, extra: tuple[str, ...] = ()) -> float:
-        """Compute time of a ``stage`` job whose wall time was ``wall_s``; ``extra`` are the
-        further stages the job's own code ran (modelled: their costs are added; measured:
-        ``wall_s`` already holds them)."""
+    def cost(self, stage: str, wall_s: float) -> float:
+        """Compute time of a ``stage`` job whose wall time was ``wall_s``."""
         if self.cfg.model == "measured":
             return wall_s * self.cfg.measured_scale
-        return sum(self._modelled(s) for s in (stage, *extra))
+        return self._modelled(stage)
+
+    def extra_cost(self, extra: tuple[str, ...]) -> float:
+        """What the further stages ``extra`` that a job's own code ran add to its :meth:`cost`
+        (modelled: their costs; measured: nothing, its wall time holds them)."""
+        return 0.0 if self.cfg.model == "measured" else sum(self._modelled(s) for s in extra)
 
     def _modelled(self, stage: str) -> float:
         try:
@@ -103,11 +106,13 @@ class Lane:
     ``None`` when a real-time job was dropped because its stage queue was full.
 
     A job's ``work`` runs when the job starts. If it returns a :class:`Future` (work handed
-    to the image pipeline's worker thread, ``sim/run/pipeline.py``), the lane takes the
-    result through ``resolve`` when the job finishes in simulated time, before ``on_done``;
-    with ``wait=False`` it hands ``on_done`` the future itself (a result only evaluation reads).
-    ``extra_stages`` names, from the result, the stages the work ran beyond its own, whose
-    modelled costs the job also holds its device for (a matching attempt that reached the ICP)."""
+    to the image pipeline's worker threads, ``sim/run/pipeline.py``, e.g. through
+    ``offload``), the lane takes the result through ``resolve`` when the job finishes in
+    simulated time, before ``on_done``; with ``wait=False`` it hands ``on_done`` the future
+    itself (a result only evaluation reads). ``extra_stages`` names, from the result, the
+    stages the work ran beyond its own, whose modelled costs the job holds its device for
+    after its own stage's (a matching attempt that reached the ICP): a future is resolved
+    between the two, so work beside the loop runs through the stage's own cost first."""
 
     def __init__(
         self,
@@ -118,9 +123,11 @@ class Lane:
         compute: ComputeModel,
         max_queue: int,
         resolve: Callable[[Future], Any] = Future.result,
+        offload: Callable[[str, Callable[[], Any]], Any] = lambda _part, fn: fn(),
     ):
         self.env = env
         self.resolve = resolve
+        self.offload = offload  # (part, fn): fn's result or a future of it (ImagePipeline.background)
         self.robot = robot
         self.compute = compute
         self.max_queue = max_queue
@@ -198,6 +205,19 @@ class Lane:
             except simpy.Interrupt:
                 request = self._request(resource, priority)
 
+    def _hold(self, resource, request, priority: Priority, seconds: float):
+        """Hold the device for ``seconds`` of compute; a preempted job queues for the rest.
+        Returns the request that holds the device at the end."""
+        left = seconds
+        while True:
+            start = self.env.now
+            try:
+                yield self.env.timeout(left)
+                return request
+            except simpy.Interrupt:  # preempted by a real-time job: queue for the rest
+                left -= self.env.now - start
+                request = yield from self._acquire(resource, self._request(resource, priority), priority)
+
     def _run(
         self, resource, request, waits: bool, queue: _StageQueue, record: JobRecord, work, on_done, priority: Priority, wait: bool, extra_stages
     ):
@@ -211,19 +231,15 @@ class Lane:
             result = work()
             record.wall_s = time.perf_counter() - t0
             self.wall_s += record.wall_s
-            extra = extra_stages(result) if extra_stages is not None else ()
-            record.compute_s = self.compute.cost(record.stage, record.wall_s, extra) * self.slowdown
-            left = record.compute_s
-            while True:
-                start = self.env.now
-                try:
-                    yield self.env.timeout(left)
-                    break
-                except simpy.Interrupt:  # preempted by a real-time job: queue for the rest
-                    left -= self.env.now - start
-                    request = yield from self._acquire(resource, self._request(resource, priority), priority)
-            if wait and isinstance(result, Future):
+            record.compute_s = self.compute.cost(record.stage, record.wall_s) * self.slowdown
+            request = yield from self._hold(resource, request, priority, record.compute_s)
+            if isinstance(result, Future) and (wait or extra_stages is not None):
                 result = self.resolve(result)
+            if extra_stages is not None:
+                extra = self.compute.extra_cost(extra_stages(result)) * self.slowdown
+                if extra > 0:
+                    record.compute_s += extra
+                    request = yield from self._hold(resource, request, priority, extra)
             record.finished = self.env.now
             self.busy_s[record.device] += record.compute_s
             queue.done.append([record.submitted, record.started, record.finished, record.wall_s, record.compute_s])

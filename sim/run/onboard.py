@@ -46,7 +46,7 @@ from slam.lie import roll_pitch, rot_z, se3, se3_inv
 from slam.local_estimator import FramePose, LocalEstimator
 from slam.local_mapper import LocalMapper
 from slam.markers import MarkerDetection
-from slam.matcher import MatcherParams
+from slam.matcher import MatcherParams, MatchResult
 from slam.navigation.exploration import ExplorationParams, Goal, RevisitPlace
 from slam.navigation.explorer import Explorer
 from slam.navigation.observation import peer_to_observe
@@ -54,7 +54,6 @@ from slam.obstacles import Classification, ObstacleParams
 from slam.rest import RestParams
 from slam.stereo import StereoCalibration, depth_error, remove_disparity_offset
 from slam.submap import SubmapParams
-from slam.team_matcher import MatchRecord
 from slam.vo import StereoVO, VoParams, VoResult
 
 TRUTH_MATCH_S = 1e-6  # s: a truth sample is at the filter's time within this
@@ -108,11 +107,11 @@ def matcher_params(cfg: SlamConfig, calib: StereoCalibration, seed: int) -> Matc
     return MatcherParams(**slam_kwargs(MatcherParams, m), stereo_error_m=float(depth_error(m.stereo_error_depth_m, calib)), seed=seed)
 
 
-def _icp_stage(out: tuple[list, MatchRecord]) -> tuple[str, ...]:
+def _icp_stage(result: MatchResult) -> tuple[str, ...]:
     """A matching attempt's ICP (thesis 8.4: "only computed for almost certain matches")
     costs its own stage, on top of the feature matching and voting every attempt costs; the
     4D+6D mode's second refinement, started from the first's result, is charged with it."""
-    return ("icp",) if out[1].result.reached_icp else ()
+    return ("icp",) if result.reached_icp else ()
 
 
 def agent_params(cfg: SlamConfig, matching: MatcherParams | None = None, marker_tables: dict | None = None) -> AgentParams:
@@ -256,13 +255,18 @@ class OnboardStack:
             self.lane.submit("pairing", work=self.agent.pair_submaps, on_done=self._matching_done, priority=Priority.BACKGROUND)
             return
         cand = matcher.next_candidate()
-        self.lane.submit(
-            "matching",
-            work=lambda: self.agent.attempt_match(cand, self.lane.env.now),
-            on_done=lambda out, t: self._matching_done(out[0], t),
-            priority=Priority.BACKGROUND,
-            extra_stages=_icp_stage,
-        )
+        started = []  # (pending attempt, job start time)
+
+        def work():  # the pair is taken when the job starts; the matching itself runs beside the loop
+            pending = matcher.start(cand)
+            started.append((pending, self.lane.env.now))
+            return self.lane.offload("matching", pending.run)
+
+        def done(result, t_done: float) -> None:
+            pending, t = started[0]
+            self._matching_done(self.agent.match_done(matcher.finish(pending, result, t))[0], t_done)
+
+        self.lane.submit("matching", work=work, on_done=done, priority=Priority.BACKGROUND, extra_stages=_icp_stage)
 
     def _matching_done(self, out, _t: float) -> None:
         self._matching_queued = False

@@ -13,6 +13,10 @@ its job is submitted starts on the worker then (:meth:`ImagePipeline.job`), so a
 SGBM follows its own drawing rather than every pair of that instant. A run gives the
 same metrics threaded or inline (``tests/test_slam_run.py``).
 
+Lane jobs of the robots' background work that need nothing but their inputs (submap
+matching, ``sim/run/onboard.py``) run on a thread of their own (:meth:`ImagePipeline.background`),
+so images never queue behind them; one thread, so they run in the order they started.
+
 Inline (``workers=0``) everything runs on the loop's thread as it is asked for: the
 mode for ``compute.model: measured``, whose jobs' modelled time is their own wall time.
 """
@@ -39,6 +43,7 @@ class ImagePipeline:
         self.timers = timers
         self.waited_s = 0.0
         self._executors = [ThreadPoolExecutor(1, thread_name_prefix=f"images{k}") for k in range(workers)]
+        self._background = ThreadPoolExecutor(1, thread_name_prefix="background") if workers else None
         self._started: deque[Future] = deque()  # to surface a failure nobody waits for
 
     @property
@@ -55,6 +60,24 @@ class ImagePipeline:
             return future
         future: Future = Future()
         future.set_result(fn(*args))
+        return future
+
+    def background(self, part: str, fn: Callable[[], T]) -> Future | T:
+        """Run ``fn()`` on the background thread, after the background work started before
+        it, timed as ``part`` of the workers' time; inline: now, returning its result."""
+        self._raise_failures()
+        if self._background is None:
+            return fn()
+
+        def timed() -> T:
+            t0 = time.perf_counter()
+            try:
+                return fn()
+            finally:
+                self.timers.add(part, t0)
+
+        future = self._background.submit(timed)
+        self._started.append(future)
         return future
 
     def job(self, worker: int, fn: Callable[..., T], *args) -> Callable[[], Any]:
@@ -81,6 +104,9 @@ class ImagePipeline:
     def close(self, last: Callable[[int], None] | None = None) -> None:
         """Finish the workers' queues, run ``last(worker)`` on each (e.g. release its GL
         contexts; ``last(0)`` inline), stop them, and raise the first failure nobody collected."""
+        if self._background is not None:
+            self._background.shutdown(wait=True)
+            self._background = None
         if self._executors:
             if last is not None:
                 self._started.extend(executor.submit(last, k) for k, executor in enumerate(self._executors))

@@ -346,7 +346,8 @@ class Run:
         cfg = robot.cfg
         cores = cfg.computer.cores or robot.default_cores
         lane = Lane(
-            self.env, robot.name, cores, cfg.computer.fpga, ComputeModel(self.scenario.compute), self.scenario.compute.max_queue, self.images.result
+            self.env, robot.name, cores, cfg.computer.fpga, ComputeModel(self.scenario.compute), self.scenario.compute.max_queue, self.images.result,
+            self.images.background,
         )
         realism = self.scenario.realism
         preset = cfg.imu.preset or robot.default_imu_preset
