@@ -790,7 +790,8 @@ class Run:
         return [(xpos[body][:2].copy(), self.robots[name].robot.body_radius_m) for name, body in self._root_body.items() if name != robot.name]
 
     def _score_image(self, runtime: RobotRuntime, frame_id: int, depth: np.ndarray, obstacle: np.ndarray, classified: np.ndarray) -> None:
-        """A mapped image's flags at its true camera pose (:mod:`sim.evaluation.image_classification`)."""
+        """A mapped image's flags at its true camera pose (:mod:`sim.evaluation.image_classification`),
+        scored on the pipeline's background thread (in mapping order; nothing in the run reads them)."""
         truth = runtime.capture_truth.pop(frame_id, None)
         for stale in [k for k in runtime.capture_truth if k < frame_id]:  # frames never mapped
             del runtime.capture_truth[stale]
@@ -798,11 +799,14 @@ class Run:
             T_world_cam, others, pair = truth
             true_depth = self.images.result(pair).depth
             t = time.perf_counter()
-            cells = runtime.image_cells
-            cells.add(depth, obstacle, T_world_cam, others, true_depth, seen=classified)
-            if self.image_observer is not None:
-                name = runtime.robot.name
-                self.image_observer(MappedImage(name, frame_id, depth, obstacle, T_world_cam, others, true_depth, cells.calibration, cells.params))
+            cells, observer, name = runtime.image_cells, self.image_observer, runtime.robot.name
+
+            def score() -> None:
+                cells.add(depth, obstacle, T_world_cam, others, true_depth, seen=classified)
+                if observer is not None:
+                    observer(MappedImage(name, frame_id, depth, obstacle, T_world_cam, others, true_depth, cells.calibration, cells.params))
+
+            self.images.background("evaluation", score)
             self.timers.add("evaluation", t)
 
     def _stereo_done(self, runtime: RobotRuntime, rig: StereoRig, stereo: StereoFrame, depth: np.ndarray, vo_frame: int, t_capture: float):
