@@ -13,9 +13,10 @@ its job is submitted starts on the worker then (:meth:`ImagePipeline.job`), so a
 SGBM follows its own drawing rather than every pair of that instant. A run gives the
 same metrics threaded or inline (``tests/test_slam_run.py``).
 
-Lane jobs of the robots' background work that need nothing but their inputs (submap
-matching, ``sim/run/onboard.py``) run on a thread of their own (:meth:`ImagePipeline.background`),
-so images never queue behind them; one thread, so they run in the order they started.
+Work that needs nothing but its inputs and whose result nobody waits for soon (submap
+matching attempts, ``sim/run/onboard.py``; the scoring of mapped images against the truth,
+``sim/run/runner.py``) runs on a thread of its own (:meth:`ImagePipeline.background`), so
+images never queue behind it; one thread, so it runs in the order it was started.
 
 Inline (``workers=0``) everything runs on the loop's thread as it is asked for: the
 mode for ``compute.model: measured``, whose jobs' modelled time is their own wall time.
