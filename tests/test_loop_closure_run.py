@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from metrics_util import without_timings
 
 from sim.run.run_folder import run_to_folder
 from sim.scenario import load_scenario
@@ -51,17 +52,9 @@ def metrics(runs):
     return runs[0]
 
 
-def _without_timings(value):
-    if isinstance(value, dict):
-        return {k: _without_timings(v) for k, v in value.items() if k != "runtime" and "wall" not in k and not k.endswith("_ms")}
-    if isinstance(value, list):
-        return [_without_timings(v) for v in value]
-    return value
-
-
 def test_matching_beside_the_loop_gives_what_matching_inline_gives(runs):
     """The attempts run on the background thread while the loop goes on; every metric but wall times is the same."""
-    threaded, inline = (_without_timings(m) for m in runs)
+    threaded, inline = (without_timings(m) for m in runs)
     assert threaded["loop_closures"]["robots"]["lru1"]["matches"]["attempts"] > 0
     assert threaded == inline
 

@@ -3,6 +3,7 @@ outage, every robot's graph against its peers' and against ground truth."""
 
 import numpy as np
 import pytest
+from metrics_util import without_timings
 
 from sim.evaluation import results_folder
 from sim.evaluation.trajectory import pose_matrix
@@ -104,18 +105,10 @@ def test_same_scenario_same_slam(runs):
         assert a.robots[name].onboard.agent.graph.signatures() == b.robots[name].onboard.agent.graph.signatures()
 
 
-def _without_timings(value):
-    if isinstance(value, dict):
-        return {k: _without_timings(v) for k, v in value.items() if k != "runtime" and "wall" not in k and not k.endswith("_ms")}
-    if isinstance(value, list):
-        return [_without_timings(v) for v in value]
-    return value
-
-
 def test_threaded_and_inline_images_give_the_same_metrics(runs, tmp_path):
     """Everything ``metrics.json`` holds but wall times (``runtime``, ``*wall*``, ``*_ms``): stereo depth errors, exposures,
     detections, maps, trajectories (sim/run/pipeline.py)."""
-    threaded, inline = (_without_timings(results_folder.write(run, tmp_path / name)) for run, name in zip(runs, ("threaded", "inline")))
+    threaded, inline = (without_timings(results_folder.write(run, tmp_path / name)) for run, name in zip(runs, ("threaded", "inline")))
     assert threaded["robots"]["lru1"]["stereo"] and threaded["robots"]["lru1"]["imaging"]
     assert threaded["robots"]["lru1"]["calibration"]["head"]["lens_disparity_error_rms_px"] > 0  # the realistic world's lenses
     assert threaded == inline
