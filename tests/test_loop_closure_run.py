@@ -44,7 +44,10 @@ REVISIT = {
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """The revisit with its matching on the background thread beside the loop, and inline (sim/run/pipeline.py)."""
-    return [run_to_folder(load_scenario(REVISIT), tmp_path_factory.mktemp(name), image_workers=n) for name, n in (("threaded", 1), ("inline", 0))]
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("MARSYARD_BACKGROUND_THREAD", "1")
+        threaded = run_to_folder(load_scenario(REVISIT), tmp_path_factory.mktemp("threaded"), image_workers=1)
+    return threaded, run_to_folder(load_scenario(REVISIT), tmp_path_factory.mktemp("inline"), image_workers=0)
 
 
 @pytest.fixture(scope="module")

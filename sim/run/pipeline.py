@@ -15,8 +15,9 @@ same metrics threaded or inline (``tests/test_slam_run.py``).
 
 Work that needs nothing but its inputs and whose result nobody waits for soon (submap
 matching attempts, ``sim/run/onboard.py``; the scoring of mapped images against the truth,
-``sim/run/runner.py``) runs on a thread of its own (:meth:`ImagePipeline.background`), so
-images never queue behind it; one thread, so it runs in the order it was started.
+``sim/run/runner.py``) may run on a thread of its own (:meth:`ImagePipeline.background`,
+with ``background=True``), so images never queue behind it; one thread, so it runs in the
+order it was started. Without it, that work runs on the loop's thread.
 
 Inline (``workers=0``) everything runs on the loop's thread as it is asked for: the
 mode for ``compute.model: measured``, whose jobs' modelled time is their own wall time.
@@ -39,12 +40,12 @@ class ImagePipeline:
     so they run in the order they were started. ``timers`` gets the workers' wall time per
     part (the loop's own when inline); ``waited_s`` is the loop's time blocked on them."""
 
-    def __init__(self, workers: int, timers):
+    def __init__(self, workers: int, timers, background: bool = False):
         self.workers = workers
         self.timers = timers
         self.waited_s = 0.0
         self._executors = [ThreadPoolExecutor(1, thread_name_prefix=f"images{k}") for k in range(workers)]
-        self._background = ThreadPoolExecutor(1, thread_name_prefix="background") if workers else None
+        self._background = ThreadPoolExecutor(1, thread_name_prefix="background") if workers and background else None
         self._started: deque[Future] = deque()  # to surface a failure nobody waits for
 
     @property
@@ -65,7 +66,7 @@ class ImagePipeline:
 
     def background(self, part: str, fn: Callable[[], T]) -> Future | T:
         """Run ``fn()`` on the background thread, after the background work started before
-        it, timed as ``part`` of the workers' time; inline: now, returning its result."""
+        it, timed as ``part`` of the workers' time; without that thread: now, returning its result."""
         self._raise_failures()
         if self._background is None:
             return fn()

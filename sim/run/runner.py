@@ -200,6 +200,13 @@ class RobotRuntime:
 IMAGE_WORKERS = int(os.environ.get("MARSYARD_IMAGE_WORKERS", "1"))
 
 
+def background_thread() -> bool:
+    """Whether threaded runs give submap matching and image scoring a thread of their own
+    (sim/run/pipeline.py): only with ``MARSYARD_BACKGROUND_THREAD=1``. On two cores it made
+    Etna faster in one of three before/after pairs and slower in two (README, "Measured")."""
+    return os.environ.get("MARSYARD_BACKGROUND_THREAD", "0") == "1"
+
+
 class Timers:
     """Wall-clock seconds spent per part of the run (several image workers may add at once)."""
 
@@ -238,7 +245,7 @@ class Run:
         self.timers = Timers()
         if image_workers is None:  # measured compute times are the jobs' own wall times: inline
             image_workers = 0 if scenario.compute.model == "measured" else IMAGE_WORKERS
-        self.images = ImagePipeline(image_workers, Timers() if image_workers else self.timers)
+        self.images = ImagePipeline(image_workers, Timers() if image_workers else self.timers, background_thread())
         self._renderers = 0  # renderers made so far: each draws on worker (its index modulo the workers)
         self.memory = MemoryTrace()
         self.recorder = recorder
@@ -346,7 +353,13 @@ class Run:
         cfg = robot.cfg
         cores = cfg.computer.cores or robot.default_cores
         lane = Lane(
-            self.env, robot.name, cores, cfg.computer.fpga, ComputeModel(self.scenario.compute), self.scenario.compute.max_queue, self.images.result,
+            self.env,
+            robot.name,
+            cores,
+            cfg.computer.fpga,
+            ComputeModel(self.scenario.compute),
+            self.scenario.compute.max_queue,
+            self.images.result,
             self.images.background,
         )
         realism = self.scenario.realism
