@@ -417,7 +417,7 @@ def runtime_metrics(run: Run) -> dict[str, Any]:
         "drain_end": run.drain_end,
         "real_time_factor": run.sim_time / run.wall_s if run.wall_s > 0 else None,
         "parts_s": parts,  # the run loop's thread; "waiting": blocked on the image pipeline (sim/run/pipeline.py)
-        "image_thread_s": background,  # the pipeline's threads: images, "matching" and "evaluation" (empty when inline)
+        "image_thread_s": background,  # the pipeline's threads (empty when inline)
         "memory": run.memory.metrics(),  # resident set size over simulated time (sim/run/memory.py)
     }
 
