@@ -57,6 +57,7 @@ def metrics(runs):
 
 def test_matching_beside_the_loop_gives_what_matching_inline_gives(runs):
     """The attempts run on the background thread while the loop goes on; every metric but wall times is the same."""
+    assert runs[0]["runtime"]["image_thread_s"]["matching"] > 0 and "matching" not in runs[1]["runtime"]["image_thread_s"]
     threaded, inline = (without_timings(m) for m in runs)
     assert threaded["loop_closures"]["robots"]["lru1"]["matches"]["attempts"] > 0
     assert threaded == inline
