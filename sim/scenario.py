@@ -781,6 +781,11 @@ class MatchingConfig(StrictModel):
         SlamParam(MatcherParams, "icp_outlier_m"),
         description="the ICP's truncated least squares: a point-to-plane residual beyond this, or a point without a partner, costs this much",
     )
+    icp_intensity_scale_m: NonNegFloat = slam_field(
+        SlamParam(MatcherParams, "icp_intensity_scale_m"),
+        description="ours: > 0 adds the points' intensities to the ICP (a coloured ICP, Park et al. 2017), an intensity residual "
+        "of 1 (the submap's median intensity) weighing as a point-to-plane residual of this many metres; 0: geometry alone (the thesis)",
+    )
 
 
 class HealthConfig(StrictModel):

@@ -54,7 +54,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam.lie import gravity_aligned, roll_pitch, wrap_angle, yaw_of
-from slam.registration import IcpResult, horizontal_radius, icp, off_line_count, ransac
+from slam.registration import IcpResult, Photometric, horizontal_radius, icp, intensity_gradients, off_line_count, ransac
 from slam.spin_images import vertical_spin_images
 from slam.submap import Submap, voxel_filter
 from slam.voting import hough3d, yaw_sweep
@@ -178,6 +178,11 @@ class MatcherParams:
     icp_iterations: int = 40
     icp_point_resolution_m: float = 0.1  # source cloud subsampling for the ICP
     icp_points: MatchPoints = MatchPoints.ALL
+    # ours: > 0 adds the points' intensities to the ICP, a coloured ICP (Park, Zhou and Koltun 2017) held to 4D: an
+    # intensity residual of 1 (the submap's median intensity) weighs as a point-to-plane residual of this many metres.
+    # The ground's relief barely holds x, y and yaw, its texture does (docs/matching.md, "A coloured ICP"); 0: the
+    # thesis's geometric ICP
+    icp_intensity_scale_m: float = 0.0
     # ours: a second ICP started at the graph's prediction of the pair; the match keeps whichever ends at the lower
     # truncated cost. On smooth ground the hypotheses are ambiguous at 0.1-0.6 m, and the ICP's cost near the truth
     # is no lower than at a wrong hypothesis's end (docs/matching.md, "A second ICP from the graph's prediction")
@@ -263,6 +268,7 @@ class Keypoints:
     descriptors: np.ndarray | None = None  # (n, 33) unit FPFH or (n, spin_bins^2) unit spin images
     frames: np.ndarray | None = None  # (n, 3, 3) local reference frames, rows x, y, z
     geometry: CloudGeometry | None = None  # built by cloud_geometry when matched, released by PairQueue.hold_geometry
+    intensity: np.ndarray | None = None  # (k,) uint8: the intensities of source, the submap's own array (coloured ICP)
 
 
 def surface_variation(cloud: np.ndarray, radius: float) -> np.ndarray:
@@ -305,7 +311,7 @@ def prepare(submap: Submap, params: MatcherParams) -> Keypoints | str:
     rng = np.random.default_rng([params.seed, submap.index, len(points)])
     if off_line_count(points, params.line_distance_m, 100, rng) < params.min_off_line_keypoints:
         return "keypoints line-like"
-    return Keypoints(submap.key, submap.frame_index, points, kp, submap.points, np.asarray(submap.classified, dtype=bool))
+    return Keypoints(submap.key, submap.frame_index, points, kp, submap.points, np.asarray(submap.classified, dtype=bool), intensity=submap.intensity)
 
 
 def salient_keypoints(pts: np.ndarray, obstacle: np.ndarray, params: MatcherParams) -> np.ndarray | None:
@@ -510,7 +516,26 @@ def _icp_points(kp: Keypoints, params: MatcherParams) -> np.ndarray | slice:
     return kp.classified if params.icp_points is MatchPoints.CLASSIFIED else slice(None)
 
 
-def _refine(source: np.ndarray, a: Keypoints, T0: np.ndarray, dof: int, params: MatcherParams) -> IcpResult | None:
+def _normalised_intensity(kp: Keypoints, params: MatcherParams) -> np.ndarray:
+    """The intensities of the points the ICP aligns over the submap's median: the robots'
+    exposures differ, and so do one robot's from submap to submap (auto-exposure)."""
+    c = np.asarray(kp.intensity, dtype=float)
+    return c[_icp_points(kp, params)] / max(float(np.median(c)), 1.0)
+
+
+def _photometric(a: Keypoints, b_intensity: np.ndarray, params: MatcherParams) -> Photometric:
+    """The coloured ICP's intensity term (``params.icp_intensity_scale_m``) for submap a's
+    ICP points and the source's voxel intensities."""
+    g = cloud_geometry(a, params)
+    m = _icp_points(a, params)
+    tree = g.tree if params.icp_points is MatchPoints.ALL else cKDTree(g.cloud[m])
+    c = _normalised_intensity(a, params)
+    return Photometric(c, intensity_gradients(g.cloud[m], g.normals[m], c, tree), b_intensity, params.icp_intensity_scale_m)
+
+
+def _refine(
+    source: np.ndarray, a: Keypoints, T0: np.ndarray, dof: int, params: MatcherParams, photometric: Photometric | None = None
+) -> IcpResult | None:
     m = _icp_points(a, params)
     g = cloud_geometry(a, params)
     tree = g.tree if params.icp_points is MatchPoints.ALL else None
@@ -525,14 +550,17 @@ def _refine(source: np.ndarray, a: Keypoints, T0: np.ndarray, dof: int, params: 
         min_pairs=params.min_icp_pairs,
         tree=tree,
         outlier_m=params.icp_outlier_m,
+        photometric=photometric,
     )
 
 
-def _refine_best(source: np.ndarray, a: Keypoints, starts: dict[str, np.ndarray], dof: int, params: MatcherParams) -> tuple[IcpResult | None, str]:
+def _refine_best(
+    source: np.ndarray, a: Keypoints, starts: dict[str, np.ndarray], dof: int, params: MatcherParams, photometric: Photometric | None = None
+) -> tuple[IcpResult | None, str]:
     """The ICP from each of ``starts`` (named); the result with the lowest truncated cost per point
     (``IcpResult.cost``: the same source and target, so comparable) and its start's name, the first on ties; None
     and "" where every ICP had too little overlap."""
-    fits = [(fit, name) for name, T0 in starts.items() if (fit := _refine(source, a, T0, dof, params)) is not None]
+    fits = [(fit, name) for name, T0 in starts.items() if (fit := _refine(source, a, T0, dof, params, photometric)) is not None]
     return min(fits, key=lambda f: f[0].cost) if fits else (None, "")
 
 
@@ -588,13 +616,16 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
         res.timings["geometry"] = time.perf_counter() - t4
     t5 = time.perf_counter()
     cloud_b = np.asarray(b.source[_icp_points(b, params)], dtype=float)
-    source, _, _ = voxel_filter(cloud_b, np.zeros(len(cloud_b), bool), np.zeros(len(cloud_b)), params.icp_point_resolution_m)
+    coloured = params.icp_intensity_scale_m > 0
+    intensity_b = _normalised_intensity(b, params) if coloured else np.zeros(len(cloud_b))
+    source, _, source_intensity = voxel_filter(cloud_b, np.zeros(len(cloud_b), bool), intensity_b, params.icp_point_resolution_m)
+    photometric = _photometric(a, source_intensity, params) if coloured else None
     starts = {"hypothesis": best[0]}
     if params.icp_from_prior and prior is not None:  # 4D: the prediction's yaw and translation, as a hypothesis's
         starts["prior"] = prior.T_a_b if params.ransac_dof == 6 else gravity_aligned(prior.T_a_b)
-    fit, res.start = _refine_best(source, a, starts, params.ransac_dof, params)
+    fit, res.start = _refine_best(source, a, starts, params.ransac_dof, params, photometric)
     if fit is not None and params.mode is MatchMode.FOUR_SIX_D:  # 8.1.2's 4D+6D: the 4D result refined in 6D
-        fit = _refine(source, a, fit.T_a_b, 6, params)
+        fit = _refine(source, a, fit.T_a_b, 6, params, photometric)
     res.timings["icp"] = time.perf_counter() - t5
     res.icp = fit
     if fit is None:

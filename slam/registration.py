@@ -1,7 +1,8 @@
 """Geometric building blocks of submap matching (thesis 6.1.2): the two-point
 gravity-aligned solver (eq. 6.5-6.7), least-squares 4D and 6D alignment of point
 pairs, RANSAC over correspondences, the RANSAC line test of the suitability checks
-(6.1.1), and point-to-plane ICP restricted to x, y, z and yaw (or full 6D).
+(6.1.1), and point-to-plane ICP restricted to x, y, z and yaw (or full 6D), with a
+coloured ICP's intensity rows as an option (ours).
 
 Transforms map points of submap ``b`` into submap ``a``: ``p_a = R p_b + t``, i.e.
 ``T_a_b`` with ``s_b = s_a (+) T_a_b`` as the graph's ``c`` factor expects. Both
@@ -187,6 +188,42 @@ def _increment(delta: np.ndarray, dof: int) -> np.ndarray:
     return se3(rot_z(delta[3]) if dof == 4 else so3_exp(delta[3:]), delta[:3])
 
 
+@dataclass(frozen=True)
+class Photometric:
+    """The intensity term of a coloured ICP (Park, Zhou and Koltun 2017, "Colored point
+    cloud registration revisited"): per target point its intensity and its gradient in its
+    tangent plane (:func:`intensity_gradients`), per source point its intensity; the
+    residual of a pair is ``C_p + d_p . (x - p) - C_x``, ``scale_m`` metres per unit of
+    intensity, so that it is truncated and weighted as a point-to-plane residual."""
+
+    target_intensity: np.ndarray  # (k,)
+    target_gradients: np.ndarray  # (k, 3), orthogonal to the target normals
+    source_intensity: np.ndarray  # (m,)
+    scale_m: float
+
+
+def intensity_gradients(points: np.ndarray, normals: np.ndarray, intensity: np.ndarray, tree: cKDTree, neighbours: int = 16) -> np.ndarray:
+    """Per point the gradient of ``intensity`` in its tangent plane (Park et al. 2017,
+    eq. 10): least squares over its ``neighbours`` nearest points projected into the plane,
+    ``C_q - C_p = d . (q' - p)``, with ``d`` orthogonal to the normal."""
+    k = min(neighbours, len(points))
+    _, nb = tree.query(points, k=k)
+    helper = np.where(np.abs(normals[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(normals, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(normals, e1)
+    d = points[nb] - points[:, None, :]  # (n, k, 3)
+    u, v = np.einsum("nkj,nj->nk", d, e1), np.einsum("nkj,nj->nk", d, e2)
+    dc = intensity[nb] - intensity[:, None]
+    a11, a12, a22 = np.sum(u * u, axis=1), np.sum(u * v, axis=1), np.sum(v * v, axis=1)
+    b1, b2 = np.sum(u * dc, axis=1), np.sum(v * dc, axis=1)
+    det = a11 * a22 - a12 * a12
+    ok = det > 1e-12
+    det = np.where(ok, det, 1.0)
+    g1, g2 = np.where(ok, (a22 * b1 - a12 * b2) / det, 0.0), np.where(ok, (a11 * b2 - a12 * b1) / det, 0.0)
+    return g1[:, None] * e1 + g2[:, None] * e2
+
+
 _HALVINGS = 6  # of a Gauss-Newton step that does not lower the ICP's cost, before the ICP stops
 
 
@@ -202,6 +239,7 @@ def icp(
     min_pairs: int = 50,
     tree: cKDTree | None = None,
     outlier_m: float = 0.05,
+    photometric: Photometric | None = None,
 ) -> IcpResult | None:
     """Point-to-plane ICP of ``source`` (submap b) onto ``target`` (submap a, with unit
     normals) from ``T0`` (thesis 6.1.2: refinement on the full clouds). ``dof=4``
@@ -221,7 +259,10 @@ def icp(
     or the cost falls by less than ``tolerance`` relatively. A plain ICP on these ground-dominated
     clouds, whose cost is nearly flat in x, y and yaw, wanders: started at the true
     transform it ended more than 0.3 m or 3 deg off on most overlapping revisits
-    (docs/matching.md, "The ICP's cost"). None with fewer than ``min_pairs`` pairs."""
+    (docs/matching.md, "The ICP's cost"). With ``photometric`` each pair adds its
+    intensity residual as a second row (:class:`Photometric`), truncated and costed alike;
+    the RMSE, pairs and overlap are the geometric rows'. None with fewer than ``min_pairs``
+    pairs."""
     tree = cKDTree(target) if tree is None else tree
     cap = outlier_m**2
 
@@ -232,6 +273,12 @@ def icp(
         x, p, n = x[ok], target[idx[ok]], target_normals[idx[ok]]
         r = np.einsum("ij,ij->i", x - p, n)
         cost = float(np.sum(np.minimum(r * r, cap)) + cap * np.count_nonzero(~ok))
+        if photometric is not None:  # the intensity residuals, in metres, as further rows
+            g = photometric.scale_m * photometric.target_gradients[idx[ok]]
+            rc = photometric.scale_m * (photometric.target_intensity[idx[ok]] - photometric.source_intensity[ok]) + np.einsum("ij,ij->i", x - p, g)
+            cost += float(np.sum(np.minimum(rc * rc, cap)) + cap * np.count_nonzero(~ok))
+            x, n, r = np.vstack([x, x]), np.vstack([n, g]), np.concatenate([r, rc])
+            p = np.vstack([p, p])
         return cost, x, p, n, r
 
     T = np.array(T0, dtype=float)
@@ -240,7 +287,7 @@ def icp(
     done = 0
     for it in range(1, iterations + 1):
         done = it
-        if len(x) < min_pairs:
+        if len(x) < min_pairs * (2 if photometric is not None else 1):
             return None
         inl = np.abs(r) < outlier_m
         # d(R x + t)/d[t, w] for a left increment: t -> I, w -> -[x]_x
@@ -264,6 +311,8 @@ def icp(
         if decrease < tolerance:
             converged = True
             break
+    if photometric is not None:  # the geometric rows only
+        x, p = x[: len(x) // 2], p[: len(p) // 2]
     if len(x) < min_pairs:
         return None
     rmse = float(np.sqrt(np.mean(np.sum((x - p) ** 2, axis=1))))

@@ -134,7 +134,7 @@ def test_slam_keys_take_slam_defaults_and_units():
                 assert param.degrees == key.endswith("_deg"), key
                 if isinstance(param.slam_default, Enum):  # the schema lists exactly the enum's values
                     assert typing.get_args(info.annotation) == tuple(e.value for e in type(param.slam_default)), key
-    assert linked == 62
+    assert linked == 63
     # units and enums on the way to slam
     kwargs = slam_kwargs(ObstacleParams, MappingConfig(max_slope_deg=35.0, max_depth_error_m=0.3))
     assert kwargs["max_slope_rad"] == math.radians(35.0) and kwargs["max_error_m"] == 0.3
