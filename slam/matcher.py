@@ -269,6 +269,7 @@ class Keypoints:
     frames: np.ndarray | None = None  # (n, 3, 3) local reference frames, rows x, y, z
     geometry: CloudGeometry | None = None  # built by cloud_geometry when matched, released by PairQueue.hold_geometry
     intensity: np.ndarray | None = None  # (k,) uint8: the intensities of source, the submap's own array (coloured ICP)
+    intensity_gradients: np.ndarray | None = None  # (k, 3) of the coloured ICP, held and released with geometry
 
 
 def surface_variation(cloud: np.ndarray, radius: float) -> np.ndarray:
@@ -516,21 +517,25 @@ def _icp_points(kp: Keypoints, params: MatcherParams) -> np.ndarray | slice:
     return kp.classified if params.icp_points is MatchPoints.CLASSIFIED else slice(None)
 
 
-def _normalised_intensity(kp: Keypoints, params: MatcherParams) -> np.ndarray:
-    """The intensities of the points the ICP aligns over the submap's median: the robots'
-    exposures differ, and so do one robot's from submap to submap (auto-exposure)."""
+def _normalised_intensity(kp: Keypoints) -> np.ndarray:
+    """The cloud's intensities over the submap's median: the robots' exposures differ, and
+    so do one robot's from submap to submap (auto-exposure)."""
+    if kp.intensity is None:
+        raise MatcherException(f"submap {kp.key} has no intensities: the coloured ICP needs them (Keypoints from prepare)")
     c = np.asarray(kp.intensity, dtype=float)
-    return c[_icp_points(kp, params)] / max(float(np.median(c)), 1.0)
+    return c / max(float(np.median(c)), 1.0)
 
 
 def _photometric(a: Keypoints, b_intensity: np.ndarray, params: MatcherParams) -> Photometric:
     """The coloured ICP's intensity term (``params.icp_intensity_scale_m``) for submap a's
-    ICP points and the source's voxel intensities."""
+    ICP points and the source's voxel intensities; a's gradients computed over its whole
+    cloud once, kept and released with its geometry (:meth:`PairQueue.hold_geometry`)."""
     g = cloud_geometry(a, params)
+    c = _normalised_intensity(a)
+    if a.intensity_gradients is None:
+        a.intensity_gradients = intensity_gradients(g.cloud, g.normals, c, g.tree)
     m = _icp_points(a, params)
-    tree = g.tree if params.icp_points is MatchPoints.ALL else cKDTree(g.cloud[m])
-    c = _normalised_intensity(a, params)
-    return Photometric(c, intensity_gradients(g.cloud[m], g.normals[m], c, tree), b_intensity, params.icp_intensity_scale_m)
+    return Photometric(c[m], a.intensity_gradients[m], b_intensity, params.icp_intensity_scale_m)
 
 
 def _refine(
@@ -617,7 +622,7 @@ def match_pair(a: Keypoints, b: Keypoints, params: MatcherParams, prior: Prior |
     t5 = time.perf_counter()
     cloud_b = np.asarray(b.source[_icp_points(b, params)], dtype=float)
     coloured = params.icp_intensity_scale_m > 0
-    intensity_b = _normalised_intensity(b, params) if coloured else np.zeros(len(cloud_b))
+    intensity_b = _normalised_intensity(b)[_icp_points(b, params)] if coloured else np.zeros(len(cloud_b))
     source, _, source_intensity = voxel_filter(cloud_b, np.zeros(len(cloud_b), bool), intensity_b, params.icp_point_resolution_m)
     photometric = _photometric(a, source_intensity, params) if coloured else None
     starts = {"hypothesis": best[0]}
@@ -745,6 +750,7 @@ class PairQueue:
             oldest = next(iter(self._held))
             del self._held[oldest]
             self.prepared[oldest].geometry = None
+            self.prepared[oldest].intensity_gradients = None
 
     def open_pairs(self) -> list[PairKey]:
         keys = sorted(self.prepared)

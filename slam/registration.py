@@ -273,25 +273,25 @@ def icp(
         x, p, n = x[ok], target[idx[ok]], target_normals[idx[ok]]
         r = np.einsum("ij,ij->i", x - p, n)
         cost = float(np.sum(np.minimum(r * r, cap)) + cap * np.count_nonzero(~ok))
+        rows = (x, n, r)  # each row: its point, its residual's gradient over the point, its residual
         if photometric is not None:  # the intensity residuals, in metres, as further rows
             g = photometric.scale_m * photometric.target_gradients[idx[ok]]
             rc = photometric.scale_m * (photometric.target_intensity[idx[ok]] - photometric.source_intensity[ok]) + np.einsum("ij,ij->i", x - p, g)
             cost += float(np.sum(np.minimum(rc * rc, cap)) + cap * np.count_nonzero(~ok))
-            x, n, r = np.vstack([x, x]), np.vstack([n, g]), np.concatenate([r, rc])
-            p = np.vstack([p, p])
-        return cost, x, p, n, r
+            rows = (np.vstack([x, x]), np.vstack([n, g]), np.concatenate([r, rc]))
+        return cost, x, p, rows
 
     T = np.array(T0, dtype=float)
-    cost, x, p, n, r = evaluate(T)
+    cost, x, p, (xr, n, r) = evaluate(T)
     converged = False
     done = 0
     for it in range(1, iterations + 1):
         done = it
-        if len(x) < min_pairs * (2 if photometric is not None else 1):
+        if len(x) < min_pairs:
             return None
         inl = np.abs(r) < outlier_m
         # d(R x + t)/d[t, w] for a left increment: t -> I, w -> -[x]_x
-        J = np.column_stack([n[inl], np.cross(x[inl], n[inl])])  # [n, x × n]: the rotation columns about x, y, z
+        J = np.column_stack([n[inl], np.cross(xr[inl], n[inl])])  # [n, x × n]: the rotation columns about x, y, z
         J = J[:, [0, 1, 2, 5]] if dof == 4 else J
         try:
             delta = -np.linalg.solve(J.T @ J + 1e-9 * np.eye(J.shape[1]), J.T @ r[inl])
@@ -307,12 +307,10 @@ def icp(
             converged = True
             break
         decrease = (cost - new[0]) / max(cost, 1e-300)
-        T, (cost, x, p, n, r) = T_new, new
+        T, (cost, x, p, (xr, n, r)) = T_new, new
         if decrease < tolerance:
             converged = True
             break
-    if photometric is not None:  # the geometric rows only
-        x, p = x[: len(x) // 2], p[: len(p) // 2]
     if len(x) < min_pairs:
         return None
     rmse = float(np.sqrt(np.mean(np.sum((x - p) ** 2, axis=1))))
